@@ -1,0 +1,61 @@
+"""The geometry and model contract shared with the published GeoPose models.
+
+Every number that fixes what a pose, an image or a checkpoint *means* is named
+here once (see ``shared/CONVENTIONS.md``). Units are in the names: ``_MM`` for
+millimetres, ``_RAD`` for radians, ``_DEG`` for degrees, ``_PX`` for pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Final
+
+# ---------------------------------------------------------------- view classes
+VIEW_LAT_MINUS: Final = 0
+VIEW_PA: Final = 1
+VIEW_LAT_PLUS: Final = 2
+VIEW_NAMES: Final = ("LAT-", "PA", "LAT+")
+#: Euler ZYX first angle (about world z, superior) of each view's isopose.
+VIEW_ANCHOR_RAD: Final = (-math.pi / 2, 0.0, math.pi / 2)
+#: |PositionerPrimaryAngle| beyond which a view is lateral.
+LATERAL_THRESHOLD_DEG: Final = 45.0
+
+# ------------------------------------------------------------ isocentric pose
+#: Source-to-isocentre distance of the isopose (t = (0, SOI, 0) in the rotated frame).
+SOURCE_TO_ISOCENTER_MM: Final = 650.0
+ISO_TRANSLATION_MM: Final = (0.0, SOURCE_TO_ISOCENTER_MM, 0.0)
+
+# ------------------------------------------------------- model (K0) detector
+MODEL_DETECTOR_PX: Final = 256
+MODEL_PIXEL_SPACING_MM: Final = 1.2
+MODEL_SDD_MM: Final = 1020.0
+
+# ------------------------------------------------------ HU -> density (DRR)
+HU_AIR_MAX: Final = -800.0
+HU_BONE_MIN: Final = 350.0
+BONE_FACTOR: Final = 1.0
+
+# ------------------------------------------------------------- network heads
+INIT_TRANSLATION_SCALE_MM: Final = 100.0
+REFINE_ROTATION_SCALE_RAD: Final = (0.13, 0.10, 0.14)
+REFINE_TRANSLATION_SCALE_MM: Final = (4.0, 33.0, 5.0)
+VIEW_EMBEDDING_DIM: Final = 16
+
+# ---------------------------------------------------------------- similarity
+MNCC_PATCH_PX: Final = 13
+NCC_EPS: Final = 1e-5
+
+# ------------------------------------------------------ inference schedules
+GREEDY_MAX_PROPOSALS: Final = 5
+TTO_ITERATIONS: Final = 25
+TTO_MAX_LR: Final = 1e-2
+TTO_WARMUP_FRACTION: Final = 0.3
+TTO_DIV_FACTOR: Final = 25.0
+TTO_TRANSLATION_SCALE_MM: Final = 200.0
+TTO_NCC_WEIGHT: Final = 0.5
+BIPLANAR_WEIGHT: Final = 0.1
+
+# ------------------------------------------------------- DSA preprocessing
+MAP_CLIP_PERCENTILES: Final = (25.0, 75.0)
+BILATERAL_SPATIAL_SIGMA_PX: Final = 11.0
+BILATERAL_RANGE_SIGMA: Final = 11.0

@@ -1,0 +1,66 @@
+"""The volume data contract: a voxel array, its index-to-RAS affine, and the centred frame.
+
+Arrays are stored in numpy/SimpleITK order ``[k, j, i]`` (slowest axis first);
+``ijk_to_ras`` maps homogeneous ``(i, j, k, 1)`` to patient RAS mm. Label maps
+share the grid of the image they describe.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .geometry.frames import centred_to_patient, grid_centre_ras
+
+__all__ = ["Volume"]
+
+
+@dataclass
+class Volume:
+    """A 3D scalar image on a regular grid (e.g. CTA in HU, or a label map)."""
+
+    array: np.ndarray
+    ijk_to_ras: np.ndarray
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.ijk_to_ras = np.asarray(self.ijk_to_ras, dtype=float)
+        if self.array.ndim != 3:
+            raise ValueError(f"a volume is a 3D array, got shape {self.array.shape}")
+        if self.ijk_to_ras.shape != (4, 4):
+            raise ValueError("ijk_to_ras must be a 4x4 matrix")
+
+    @property
+    def shape_ijk(self) -> tuple[int, int, int]:
+        k, j, i = self.array.shape
+        return (i, j, k)
+
+    @property
+    def spacing_mm(self) -> tuple[float, float, float]:
+        """Voxel size along i, j, k (mm)."""
+        return tuple(float(v) for v in np.linalg.norm(self.ijk_to_ras[:3, :3], axis=0))
+
+    @property
+    def centre_ras(self) -> np.ndarray:
+        return grid_centre_ras(self.ijk_to_ras, self.shape_ijk)
+
+    @property
+    def ijk_to_centred(self) -> np.ndarray:
+        """4x4 from voxel index to the centred world frame (RAS axes, grid centre at 0)."""
+        return np.linalg.inv(self.centred_to_ras) @ self.ijk_to_ras
+
+    @property
+    def centred_to_ras(self) -> np.ndarray:
+        return centred_to_patient(self.ijk_to_ras, self.shape_ijk, "RAS")
+
+    @property
+    def extent_mm(self) -> np.ndarray:
+        """Physical size along i, j, k (mm), edge to edge."""
+        return np.asarray(self.shape_ijk) * np.asarray(self.spacing_mm)
+
+    def like(self, array: np.ndarray, **metadata) -> "Volume":
+        """A volume on the same grid with other voxels (e.g. a label map)."""
+        if array.shape != self.array.shape:
+            raise ValueError(f"array shape {array.shape} does not match the grid {self.array.shape}")
+        return Volume(array, self.ijk_to_ras.copy(), dict(metadata))
