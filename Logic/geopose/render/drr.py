@@ -1,0 +1,151 @@
+"""Differentiable cone-beam DRR: line integrals of density by trilinear ray marching.
+
+Rays go from the source to every detector pixel; each ray is clipped to the
+volume's box and sampled at ``n`` midpoints, so the pixel value is
+``sum(density(x_s)) * step_mm`` (density x mm). Differentiable with respect to
+the pose (and the density); runs wherever torch runs.
+
+Trilinear sampling is done as one *2D* bilinear lookup into a slice atlas plus a
+linear blend along k: the atlas stacks slice k and slice k+1 as two channels of
+tile k, tiles separated by a zero row. Torch's 2D sampler is vectorised and is
+several times faster than its 3D one on CPU, with identical results.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from ..geometry.carm import Detector, source_and_detector_points
+from ..geometry.rigid import RigidTransform
+from ..volume import Volume
+from .density import hu_to_density, label_channels
+
+__all__ = ["DRR"]
+
+
+class DRR(nn.Module):
+    """Render ``(B, C, H, W)`` DRRs of a ``(C, K, J, I)`` density volume.
+
+    ``ijk_to_world`` (4x4) maps voxel indices to the centred world frame (mm);
+    poses are camera-to-world. ``step_mm`` is the sampling step along the longest
+    chord (default: half the smallest voxel size).
+    """
+
+    def __init__(
+        self,
+        density: Tensor,
+        ijk_to_world: np.ndarray | Tensor,
+        detector: Detector,
+        step_mm: float | None = None,
+        channel_names: Sequence[str] | None = None,
+    ):
+        super().__init__()
+        if density.ndim == 3:
+            density = density[None]
+        if density.ndim != 4:
+            raise ValueError(f"density must be (K, J, I) or (C, K, J, I), got {tuple(density.shape)}")
+        self.density = nn.Parameter(density.float(), requires_grad=density.requires_grad)
+        self._atlas: Tensor | None = None
+        m = torch.as_tensor(np.asarray(ijk_to_world, dtype=np.float64))
+        self.register_buffer("world_to_ijk", torch.linalg.inv(m), persistent=False)
+        spacing = m[:3, :3].norm(dim=0)
+        self.step_mm = float(step_mm) if step_mm is not None else float(spacing.min()) / 2.0
+        self.detector = detector
+        self.channel_names = list(channel_names) if channel_names else [f"c{i}" for i in range(density.shape[0])]
+
+    @classmethod
+    def from_volume(
+        cls,
+        cta: Volume,
+        detector: Detector,
+        labels: Volume | None = None,
+        label_groups: Mapping[str, Sequence[int]] | None = None,
+        device: torch.device | str | None = None,
+        step_mm: float | None = None,
+    ) -> "DRR":
+        """DRR of a CTA in HU; channel 0 total density, then one channel per label group."""
+        dens = torch.as_tensor(hu_to_density(np.ascontiguousarray(cta.array, dtype=np.float32)), device=device)
+        lab = torch.as_tensor(np.ascontiguousarray(labels.array), device=device) if labels is not None else None
+        stack, names = label_channels(dens, lab, label_groups)
+        return cls(stack, cta.ijk_to_centred, detector, step_mm=step_mm, channel_names=names).to(device)
+
+    @property
+    def shape_ijk(self) -> tuple[int, int, int]:
+        _, k, j, i = self.density.shape
+        return (i, j, k)
+
+    def forward(self, pose: RigidTransform | Tensor, detector: Detector | None = None) -> Tensor:
+        det = detector or self.detector
+        if not isinstance(pose, RigidTransform):
+            pose = RigidTransform(pose)
+        dev = self.density.device
+        pose = pose.to(device=dev)
+        w2i = self.world_to_ijk.to(pose.matrix.dtype)
+        src, pix = source_and_detector_points(pose, det)  # (B,3), (B,H,W,3) world mm
+        B, H, W, _ = pix.shape
+        # Rays in continuous index space.
+        s = src @ w2i[:3, :3].T + w2i[:3, 3]
+        d = pix.reshape(B, H * W, 3) @ w2i[:3, :3].T + w2i[:3, 3]
+        seg = d - s[:, None]
+        lo, hi = _clip_to_box(s, seg, self.shape_ijk)
+        length_mm = (pix.reshape(B, H * W, 3) - src[:, None]).norm(dim=-1)  # (B, N)
+        chord_mm = ((hi - lo) * length_mm).detach()
+        n = max(1, int(math.ceil(float(chord_mm.max()) / self.step_mm)))
+        frac = (torch.arange(n, device=dev, dtype=s.dtype) + 0.5) / n
+        lam = lo[..., None] + (hi - lo)[..., None] * frac  # (B, N, n)
+        pts = s[:, None, None, :] + lam[..., None] * seg[:, :, None, :]  # (B, N, n, 3) in (i, j, k)
+        samples = self._sample(pts.reshape(1, B * H * W, n, 3))  # (C, B*H*W, n)
+        step = (chord_mm / n).to(self.density.dtype)  # (B, N)
+        img = samples.sum(dim=-1).reshape(-1, B, H * W) * step[None]
+        return img.permute(1, 0, 2).reshape(B, -1, H, W)
+
+    def atlas(self) -> Tensor:
+        """``(1, 2C, (K+2)(J+1), I)``: tile m holds slices m-1 and m (zero outside), one zero row after each."""
+        if self._atlas is not None and not self.density.requires_grad:
+            return self._atlas
+        C_, K, J, I = self.density.shape
+        zero = self.density.new_zeros(C_, 1, J, I)
+        lower = torch.cat((zero, self.density, zero), dim=1)  # slice m-1 for tile m = 0..K+1
+        upper = torch.cat((self.density, zero, zero), dim=1)  # slice m
+        tiles = torch.cat((lower, upper), dim=0)  # (2C, K+2, J, I)
+        tiles = F.pad(tiles, (0, 0, 0, 1))  # zero row after each tile
+        atlas = tiles.reshape(1, 2 * C_, (K + 2) * (J + 1), I)
+        if not self.density.requires_grad:
+            self._atlas = atlas
+        return atlas
+
+    def _sample(self, pts: Tensor) -> Tensor:
+        """Trilinear samples ``(C, ...)`` at continuous indices ``pts (1, N, n, 3)`` = (i, j, k), zero outside."""
+        C_, K, J, I = self.density.shape
+        k = pts[..., 2].clamp(-1.0, float(K))
+        k0 = torch.floor(k.detach())
+        fk = (k - k0).to(self.density.dtype)
+        rows = (K + 2) * (J + 1)
+        y = (k0 + 1.0) * (J + 1) + pts[..., 1].clamp(-1.0, float(J))
+        grid = torch.stack((2.0 * pts[..., 0] / (I - 1) - 1.0, 2.0 * y / (rows - 1) - 1.0), dim=-1)
+        pair = F.grid_sample(
+            self.atlas(), grid.to(self.density.dtype), mode="bilinear", padding_mode="zeros", align_corners=True
+        )[0]  # (2C, N, n)
+        lower, upper = pair[:C_], pair[C_:]
+        return lower + fk * (upper - lower)
+
+
+def _clip_to_box(s: Tensor, seg: Tensor, shape_ijk: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
+    """Ray parameters ``[lo, hi]`` (fractions of source->pixel) inside the voxel box
+    ``[-0.5, n - 0.5]`` per axis; empty rays get ``lo == hi``. Not differentiated."""
+    with torch.no_grad():
+        box_lo = torch.full((3,), -0.5, dtype=s.dtype, device=s.device)
+        box_hi = torch.tensor(shape_ijk, dtype=s.dtype, device=s.device) - 0.5
+        inv = 1.0 / torch.where(seg.abs() < 1e-12, torch.full_like(seg, 1e-12), seg)
+        t0 = (box_lo - s[:, None]) * inv
+        t1 = (box_hi - s[:, None]) * inv
+        lo = torch.minimum(t0, t1).amax(-1).clamp(0.0, 1.0)
+        hi = torch.maximum(t0, t1).amin(-1).clamp(0.0, 1.0)
+        hi = torch.maximum(hi, lo)
+    return lo, hi
