@@ -81,7 +81,8 @@ def matrix_to_axis_angle(R: Tensor) -> Tensor:
     # Near pi the antisymmetric part vanishes: take the axis from R + I instead.
     near_pi = theta > torch.pi - 1e-3
     if bool(near_pi.any()):
-        S = (R + torch.eye(3, dtype=R.dtype, device=R.device)) / 2.0
+        eye = torch.eye(3, dtype=R.dtype, device=R.device)
+        S = ((R + R.transpose(-1, -2)) / 2.0 - cos[..., None, None] * eye) / (1.0 - cos[..., None, None]).clamp_min(1e-12)
         diag = torch.diagonal(S, dim1=-2, dim2=-1)
         k = diag.argmax(-1, keepdim=True)
         col = torch.gather(S, -1, k[..., None, :].expand(*S.shape[:-1], 1))[..., 0]
