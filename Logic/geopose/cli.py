@@ -13,6 +13,7 @@ from . import __version__
 #: (module, register-function) for every sub-command.
 COMMANDS: list[tuple[str, str]] = [
     ("geopose.demo", "register"),
+    ("geopose.nets.checkpoint", "register"),
 ]
 
 

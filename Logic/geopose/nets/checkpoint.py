@@ -1,0 +1,272 @@
+"""Import published GeoPose Lightning checkpoints without executing pickled code.
+
+A zip-format torch checkpoint holds ``<root>/data.pkl`` (the pickled object tree)
+and ``<root>/data/<key>`` (raw tensor storages). :class:`_TensorOnlyUnpickler`
+resolves only torch tensor-rebuild functions, storage types and plain containers;
+every other global (Lightning classes, callbacks, ``os.system``, ...) becomes an
+inert :class:`ForeignObject` that records nothing and runs nothing. Only the
+``state_dict`` is used.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import json
+import os
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .model_io import save_model
+from .models import InitNet, NetConfig, RefineNet, build_model
+from .resnet import BLOCKS_PER_STAGE, BackboneConfig
+
+#: Copy of shared/reference/geopose_checkpoints.json (MIT), shipped with the module.
+PUBLISHED_MANIFEST = Path(__file__).resolve().parents[3] / "Resources" / "Models" / "published_checkpoints.json"
+#: State-dict prefixes of the published Refine checkpoint that are training-only.
+IGNORED_PREFIXES = ("criterion.",)
+_HASH_CHUNK_BYTES = 1 << 20
+
+_STORAGE_DTYPES: dict[str, torch.dtype] = {
+    "DoubleStorage": torch.float64,
+    "FloatStorage": torch.float32,
+    "HalfStorage": torch.float16,
+    "BFloat16Storage": torch.bfloat16,
+    "LongStorage": torch.int64,
+    "IntStorage": torch.int32,
+    "ShortStorage": torch.int16,
+    "CharStorage": torch.int8,
+    "ByteStorage": torch.uint8,
+    "BoolStorage": torch.bool,
+}
+
+
+class ForeignObject:
+    """Stand-in for any non-tensor object of a checkpoint; accepts and ignores all arguments."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        pass
+
+    def __setstate__(self, state: Any) -> None:
+        pass
+
+    def __setitem__(self, key: Any, value: Any) -> None:
+        pass
+
+    def append(self, value: Any) -> None:
+        pass
+
+    def extend(self, values: Any) -> None:
+        pass
+
+
+class _StorageType:
+    def __init__(self, dtype: torch.dtype) -> None:
+        self.dtype = dtype
+
+
+def _rebuild_tensor(storage: Any, offset: int, size: tuple, stride: tuple, *_ignored: Any) -> torch.Tensor:
+    if not isinstance(storage, torch.Tensor):
+        raise pickle.UnpicklingError("a tensor refers to a storage that is not in the checkpoint")
+    return storage.as_strided(tuple(size), tuple(stride), int(offset)).clone()
+
+
+def _rebuild_parameter(data: Any, *_ignored: Any) -> Any:
+    return data
+
+
+_ALLOWED: dict[tuple[str, str], Any] = {
+    ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor,
+    ("torch._utils", "_rebuild_parameter"): _rebuild_parameter,
+    ("collections", "OrderedDict"): collections.OrderedDict,
+    ("torch", "Size"): tuple,
+    ("builtins", "set"): set,
+    ("builtins", "frozenset"): frozenset,
+}
+
+
+class _TensorOnlyUnpickler(pickle.Unpickler):
+    def __init__(self, file: Any, archive: zipfile.ZipFile, root: str, little_endian: bool) -> None:
+        super().__init__(file)
+        self._archive = archive
+        self._root = root
+        self._little_endian = little_endian
+        self._storages: dict[str, torch.Tensor] = {}
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) in _ALLOWED:
+            return _ALLOWED[(module, name)]
+        if module == "torch" and name in _STORAGE_DTYPES:
+            return _StorageType(_STORAGE_DTYPES[name])
+        return type(name, (ForeignObject,), {"foreign_module": module})
+
+    def persistent_load(self, pid: Any) -> Any:
+        if not (isinstance(pid, tuple) and len(pid) >= 3 and pid[0] == "storage"):
+            return ForeignObject()
+        storage_type, key = pid[1], str(pid[2])
+        if not isinstance(storage_type, _StorageType):
+            return ForeignObject()
+        if key not in self._storages:
+            try:
+                raw = bytearray(self._archive.read(f"{self._root}/data/{key}"))
+            except KeyError:
+                raise pickle.UnpicklingError(f"storage {key} is missing from the checkpoint") from None
+            flat = torch.frombuffer(raw, dtype=torch.uint8) if raw else torch.empty(0, dtype=torch.uint8)
+            if flat.numel() % torch.empty((), dtype=storage_type.dtype).element_size():
+                raise pickle.UnpicklingError(f"storage {key} has a size that does not fit its dtype")
+            values = flat.view(storage_type.dtype)
+            if not self._little_endian and values.element_size() > 1:
+                values = values.view(torch.uint8).view(-1, values.element_size()).flip(1).reshape(-1).view(storage_type.dtype)
+            self._storages[key] = values
+        return self._storages[key]
+
+
+def read_checkpoint_state_dict(path: str | os.PathLike) -> dict[str, torch.Tensor]:
+    """The ``state_dict`` tensors of a zip-format torch/Lightning checkpoint, without running its code.
+
+    A bare state dict (a file holding only ``{name: tensor}``) is accepted too.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    problem = f"{path} is not a PyTorch checkpoint"
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{problem} (not a zip-format torch.save file); pass the .ckpt file of a GeoPose release")
+    with zipfile.ZipFile(path) as archive:
+        pickles = [n for n in archive.namelist() if n.endswith("/data.pkl") and n.count("/") == 1]
+        if len(pickles) != 1:
+            raise ValueError(f"{problem} (no single data.pkl in the archive); pass the .ckpt file of a GeoPose release")
+        root = pickles[0].split("/")[0]
+        names = set(archive.namelist())
+        byteorder = archive.read(f"{root}/byteorder").decode().strip() if f"{root}/byteorder" in names else "little"
+        with archive.open(pickles[0]) as stream:
+            try:
+                obj = _TensorOnlyUnpickler(stream, archive, root, byteorder == "little").load()
+            except (pickle.UnpicklingError, EOFError, ValueError, TypeError, RuntimeError, AttributeError) as exc:
+                raise ValueError(f"{problem} (unreadable object tree: {exc})") from None
+    state = obj.get("state_dict") if isinstance(obj, dict) and "state_dict" in obj else obj
+    if not isinstance(state, dict) or not state or not all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
+    ):
+        raise ValueError(f"{path} holds no state_dict of tensors; pass a GeoPose Lightning checkpoint")
+    return dict(state)
+
+
+def load_manifest(path: str | os.PathLike = PUBLISHED_MANIFEST) -> dict[str, Any]:
+    """The published checkpoints' manifest (file names, sizes, SHA-256)."""
+    with open(path, encoding="utf-8") as handle:
+        return json.load(handle)
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for chunk in iter(lambda: handle.read(_HASH_CHUNK_BYTES), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def official_entry(path: str | os.PathLike, manifest: dict[str, Any]) -> tuple[str, dict[str, Any]] | None:
+    """``(official name, manifest entry)`` if the file name is a published release or source name."""
+    name = Path(path).name
+    for official, entry in manifest["files"].items():
+        if name in (official, entry.get("source_filename")):
+            return official, entry
+    return None
+
+
+def verify_official(path: str | os.PathLike, official: str, entry: dict[str, Any]) -> None:
+    """Refuse a file carrying an official name whose size or SHA-256 differs from the manifest."""
+    size = Path(path).stat().st_size
+    remedy = f"download {official} again from the GeoPose release, or rename the file if it is your own model"
+    if size != entry["bytes"]:
+        raise ValueError(f"{path} is named like the published {official} but has {size} bytes, not {entry['bytes']}; {remedy}")
+    digest = sha256_file(path)
+    if digest != entry["sha256"]:
+        raise ValueError(f"{path} is named like the published {official} but its SHA-256 is {digest}, not {entry['sha256']}; {remedy}")
+
+
+def infer_config(state: dict[str, torch.Tensor]) -> NetConfig:
+    """Architecture from state-dict key names and shapes (Init: ``net.fc.*``; Refine: ``net.backbone.*``)."""
+    if "net.fc.pose.weight" in state:
+        kind, trunk = "init", "net."
+    elif "net.head.weight" in state:
+        kind, trunk = "refine", "net.backbone."
+    else:
+        raise ValueError("the state_dict is neither a GeoPose-Init (net.fc.*) nor a GeoPose-Refine (net.head.*) network")
+    conv1 = state.get(f"{trunk}conv1.weight")
+    if conv1 is None or conv1.ndim != 4:
+        raise ValueError(f"the state_dict lacks the stem convolution {trunk}conv1.weight")
+    blocks = tuple(
+        len({k[len(f"{trunk}layer{s}."):].split(".")[0] for k in state if k.startswith(f"{trunk}layer{s}.")})
+        for s in range(1, 5)
+    )
+    depths = [d for d, b in BLOCKS_PER_STAGE.items() if b == blocks]
+    if not depths:
+        raise ValueError(f"ResNet stages with {blocks} blocks match no supported depth {sorted(BLOCKS_PER_STAGE)}")
+    backbone = BackboneConfig(depth=depths[0], base_width=conv1.shape[0], in_channels=conv1.shape[1])
+    if kind == "init":
+        return NetConfig("init", backbone, embedding_dim=state["net.fc.role_embedding.weight"].shape[1])
+    return NetConfig(
+        "refine", backbone, embedding_dim=state["net.view_emb.weight"].shape[1], fusion_dim=state["net.fusion.0.weight"].shape[0]
+    )
+
+
+def module_from_state_dict(state: dict[str, torch.Tensor]) -> InitNet | RefineNet:
+    """Build the matching module and load ``state`` strictly (training-only ``criterion.*`` dropped)."""
+    kept = {k: v for k, v in state.items() if not k.startswith(IGNORED_PREFIXES)}
+    module = build_model(infer_config(kept))
+    try:
+        module.load_state_dict(kept, strict=True)
+    except RuntimeError as exc:
+        raise ValueError(f"the checkpoint does not match the GeoPose {module.config.kind} layout: {exc}") from None
+    return module.eval()
+
+
+def import_checkpoint(
+    checkpoint: str | os.PathLike, out: str | os.PathLike, *, dtype: str = "float32", manifest_path: str | os.PathLike = PUBLISHED_MANIFEST
+) -> Path:
+    """Convert a Lightning ``.ckpt`` into a GeoPose model file; official names are verified first.
+
+    ``out`` is a ``.pt`` file or a directory (then ``<kind>.pt`` inside it).
+    """
+    checkpoint = Path(checkpoint)
+    if not checkpoint.is_file():
+        raise FileNotFoundError(f"checkpoint {checkpoint} does not exist")
+    manifest = load_manifest(manifest_path)
+    official = official_entry(checkpoint, manifest)
+    if official is not None:
+        verify_official(checkpoint, *official)
+    module = module_from_state_dict(read_checkpoint_state_dict(checkpoint))
+    metadata: dict[str, Any] = {"source_file": checkpoint.name}
+    if official is not None:
+        name, entry = official
+        metadata.update(
+            published=name, sha256=entry["sha256"], contract=entry.get("contract"), doi=manifest.get("zenodo_doi")
+        )
+    out = Path(out)
+    if out.is_dir() or out.suffix == "":
+        out = out / f"{module.config.kind}.pt"
+    return save_model(module, out, metadata, dtype=dtype)
+
+
+def register(subparsers: Any) -> None:
+    """``geopose import-checkpoint FILE --out OUT``."""
+    parser = subparsers.add_parser(
+        "import-checkpoint",
+        help="convert a published GeoPose Lightning checkpoint into a GeoPose model file (no pickled code is run)",
+    )
+    parser.add_argument("checkpoint", help="the .ckpt file (geopose_init.ckpt / geopose_refine.ckpt)")
+    parser.add_argument("--out", required=True, help="output .pt file, or a directory (then <init|refine>.pt)")
+    parser.add_argument("--dtype", choices=("float32", "float16"), default="float32", help="storage dtype of the weights")
+    parser.set_defaults(func=_run)
+
+
+def _run(args: Any) -> int:
+    path = import_checkpoint(args.checkpoint, args.out, dtype=args.dtype)
+    print(f"wrote {path}")
+    return 0

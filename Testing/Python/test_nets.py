@@ -1,0 +1,392 @@
+"""GeoPose-Init/Refine modules, model files, checkpoint import, ONNX parity and backends."""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import math
+import os
+import zipfile
+from pathlib import Path
+
+import pytest
+import torch
+
+from geopose.contract import (
+    INIT_TRANSLATION_SCALE_MM,
+    ISO_TRANSLATION_MM,
+    REFINE_ROTATION_SCALE_RAD,
+    REFINE_TRANSLATION_SCALE_MM,
+    VIEW_ANCHOR_RAD,
+    VIEW_LAT_MINUS,
+    VIEW_LAT_PLUS,
+    VIEW_PA,
+)
+from geopose.geometry.carm import isopose
+from geopose.geometry.rigid import RigidTransform, params_from_pose, rotation_angle_rad
+from geopose.nets import (
+    BackboneConfig,
+    InitNet,
+    NetConfig,
+    RefineNet,
+    export_onnx,
+    load_model,
+    make_predictors,
+    normalize_minmax,
+    parameter_count,
+    read_model_header,
+    save_model,
+)
+from geopose.nets.backend import OnnxInitPredictor, OnnxRefinePredictor
+from geopose.nets.checkpoint import (
+    PUBLISHED_MANIFEST,
+    import_checkpoint,
+    read_checkpoint_state_dict,
+    register,
+)
+
+REFERENCE = Path(__file__).resolve().parents[3] / "shared" / "reference"
+TENSOR_LIST = REFERENCE / "geopose_checkpoint_tensors.json"
+SMALL = BackboneConfig(depth=18, base_width=8)
+BN_STATS = ("running_mean", "running_var", "num_batches_tracked")
+
+
+def small_init() -> InitNet:
+    return _randomise_bn(InitNet(NetConfig("init", SMALL)))
+
+
+def small_refine() -> RefineNet:
+    return _randomise_bn(RefineNet(NetConfig("refine", SMALL)))
+
+
+def _randomise_bn(module):
+    """Non-trivial batch-norm statistics so that eval-mode outputs exercise them."""
+    gen = torch.Generator().manual_seed(0)
+    for m in module.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.copy_(torch.randn(m.running_mean.shape, generator=gen) * 0.1)
+            m.running_var.copy_(torch.rand(m.running_var.shape, generator=gen) + 0.5)
+    return module.eval()
+
+
+def published_state(name: str) -> dict[str, torch.Tensor]:
+    if not TENSOR_LIST.is_file():
+        pytest.skip(f"{TENSOR_LIST} not available")
+    gen = torch.Generator().manual_seed(1)
+    state = {}
+    for entry in json.loads(TENSOR_LIST.read_text())["files"][name]:
+        dtype = getattr(torch, entry["dtype"])
+        shape = entry["shape"]
+        state[entry["name"]] = (
+            torch.randn(shape, generator=gen).to(dtype) if dtype.is_floating_point else torch.randint(0, 99, shape, generator=gen)
+        )
+    return state
+
+
+# ------------------------------------------------------------------ layouts
+@pytest.mark.parametrize("name, cls", [("geopose_init.ckpt", InitNet), ("geopose_refine.ckpt", RefineNet)])
+def test_published_state_dicts_load_strictly(name, cls):
+    state = published_state(name)
+    kept = {k: v for k, v in state.items() if not k.startswith("criterion.")}
+    module = cls()
+    module.load_state_dict(kept, strict=True)
+    assert set(module.state_dict()) == set(kept)
+    for key, value in module.state_dict().items():
+        assert torch.equal(value, kept[key]), key
+    listed_params = sum(v.numel() for k, v in kept.items() if not k.endswith(BN_STATS))
+    assert parameter_count(module) == listed_params
+
+
+def test_smaller_backbones_and_feature_dims():
+    r18 = InitNet(NetConfig("init", BackboneConfig(depth=18)))
+    r34 = InitNet()
+    assert parameter_count(r18) < 0.6 * parameter_count(r34)
+    narrow = RefineNet(NetConfig("refine", BackboneConfig(depth=18, base_width=32)))
+    assert narrow.net.fusion[0].in_features == 5 * 32 * 8
+    with pytest.raises(ValueError, match="depth 50"):
+        BackboneConfig(depth=50)
+    with pytest.raises(ValueError, match="kind"):
+        NetConfig("segment")
+
+
+# ------------------------------------------------------------ preprocessing
+def test_normalize_minmax_per_image_and_input_untouched():
+    x = torch.stack([torch.linspace(-3, 5, 16).view(1, 4, 4), torch.full((1, 4, 4), 7.0)])
+    before = x.clone()
+    y = normalize_minmax(x)
+    assert torch.equal(x, before)
+    assert y[0].min() == 0 and y[0].max() == 1
+    assert torch.allclose(y[0].flatten(), (x[0].flatten() + 3) / 8)
+    assert torch.equal(y[1], torch.zeros(1, 4, 4))  # constant image
+    assert torch.allclose(normalize_minmax(y), y)
+    with pytest.raises(ValueError, match=r"\(B, C, H, W\)"):
+        normalize_minmax(torch.zeros(4, 4))
+
+
+# -------------------------------------------------------------------- Init
+def test_init_decode_isopose_and_scaling():
+    raw = torch.zeros(3, 6, dtype=torch.float64)
+    views = torch.tensor([VIEW_LAT_MINUS, VIEW_PA, VIEW_LAT_PLUS])
+    pose = InitNet.decode(raw, views)
+    assert torch.allclose(pose, isopose(views, dtype=torch.float64).matrix, atol=1e-9)
+    raw = torch.tensor([[0.1, -0.2, 0.05, 0.3, -0.4, 0.5]], dtype=torch.float64)
+    r, t = params_from_pose(InitNet.decode(raw, torch.tensor([VIEW_LAT_PLUS])))
+    assert torch.allclose(r[0], torch.tensor([0.1 + VIEW_ANCHOR_RAD[VIEW_LAT_PLUS], -0.2, 0.05], dtype=torch.float64))
+    expected_t = torch.tensor(ISO_TRANSLATION_MM, dtype=torch.float64) + raw[0, 3:] * INIT_TRANSLATION_SCALE_MM
+    assert torch.allclose(t[0], expected_t)
+
+
+def test_init_view_rule_and_view_conditioned_pose():
+    torch.manual_seed(0)
+    net = small_init()
+    with torch.no_grad():
+        net.net.fc.view.weight.zero_()
+        # logits (LAT-, PA, LAT+): PA highest, then LAT+.
+        net.net.fc.view.bias.copy_(torch.tensor([0.0, 5.0, 1.0]))
+    image = torch.rand(2, 1, 64, 64) * 40 + 3  # not normalised: predict min-maxes
+    pose, view, logits = net.predict(image, torch.tensor([False, True]))
+    assert view.tolist() == [VIEW_PA, VIEW_LAT_PLUS]
+    assert torch.allclose(logits[0], torch.tensor([0.0, 5.0, 1.0]))
+    _, view_free, _ = net.predict(image, None)
+    assert view_free.tolist() == [VIEW_PA, VIEW_PA]
+    with torch.no_grad():
+        net.net.fc.view.bias.copy_(torch.tensor([2.0, 5.0, 1.0]))
+    pose, view, _ = net.predict(image, torch.tensor(True))
+    assert view.tolist() == [VIEW_LAT_MINUS, VIEW_LAT_MINUS]
+    # The pose equals the forward pass run with the chosen label's embedding.
+    raw, _ = net(normalize_minmax(image), view)
+    assert torch.allclose(pose, InitNet.decode(raw, view), atol=1e-5)
+    raw_pa, _ = net(normalize_minmax(image), torch.full((2,), VIEW_PA))
+    assert not torch.allclose(raw, raw_pa)
+    with pytest.raises(ValueError, match="view labels"):
+        net(image, torch.tensor([0, 3]))
+    with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
+        net.predict(torch.rand(2, 3, 64, 64))
+
+
+# ------------------------------------------------------------------ Refine
+def test_refine_residual_scaling_and_identity():
+    torch.manual_seed(0)
+    net = small_refine()
+    target, render = torch.rand(2, 1, 64, 64), torch.rand(2, 1, 64, 64)
+    with torch.no_grad():
+        net.net.head.weight.zero_()
+        net.net.head.bias.zero_()
+    D = net.predict_residual(target, render, torch.tensor([VIEW_PA, VIEW_LAT_PLUS]))
+    assert torch.allclose(D, torch.eye(4).expand(2, 4, 4), atol=1e-6)
+    with torch.no_grad():
+        net.net.head.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+    D = net.predict_residual(target, render, VIEW_PA)
+    angle = rotation_angle_rad(D[:, :3, :3])
+    assert torch.allclose(angle, torch.full((2,), REFINE_ROTATION_SCALE_RAD[0]), atol=1e-6)
+    # Translation column is R(w) @ dt with dt = (0, s_y, 0) mm; R(w) is about x.
+    a, s = REFINE_ROTATION_SCALE_RAD[0], REFINE_TRANSLATION_SCALE_MM[1]
+    assert torch.allclose(D[0, :3, 3], torch.tensor([0.0, s * math.cos(a), s * math.sin(a)]), atol=1e-4)
+    T = isopose(VIEW_PA)
+    T_new = RigidTransform(D).inverse() @ RigidTransform(T.matrix.expand(2, 4, 4))
+    assert torch.allclose((RigidTransform(D) @ T_new).matrix, T.matrix.expand(2, 4, 4), atol=1e-4)
+
+
+def test_refine_siamese_encoder_is_shared():
+    net = small_refine()
+    assert sum(1 for k in net.state_dict() if k.endswith("conv1.weight") and "layer" not in k) == 1
+    x = torch.rand(1, 1, 64, 64)
+    with torch.no_grad():
+        a = net.net.backbone(x)
+        net.net.head.weight.zero_()
+        net.net.head.bias.zero_()
+    assert a.shape == (1, 64)
+    assert torch.equal(net(x, x, 1), torch.zeros(1, 6))
+    with pytest.raises(ValueError, match="same shape"):
+        net(x, torch.rand(1, 1, 32, 32), 1)
+
+
+# ------------------------------------------------------------- model files
+def test_model_file_round_trip(tmp_path):
+    net = small_init()
+    path = save_model(net, tmp_path / "init.pt", {"trained_on": "unit test"})
+    header = read_model_header(path)
+    assert header["architecture"]["kind"] == "init" and header["metadata"]["trained_on"] == "unit test"
+    loaded = load_model(path)
+    x = torch.rand(2, 1, 64, 64)
+    assert torch.equal(loaded.forward_all_views(x)[0], net.forward_all_views(x)[0])
+    half = load_model(save_model(net, tmp_path / "half.pt", dtype="float16"))
+    assert (tmp_path / "half.pt").stat().st_size < 0.6 * path.stat().st_size
+    assert torch.allclose(half.forward_all_views(x)[0], net.forward_all_views(x)[0], atol=2e-2)
+    # Payload is plain tensors + JSON: loads with weights_only=True.
+    payload = torch.load(path, weights_only=True)
+    assert set(payload) == {"header", "state_dict"}
+    with pytest.raises(ValueError, match="JSON"):
+        save_model(net, tmp_path / "bad.pt", {"x": object()})
+
+
+def test_load_model_rejects_foreign_files(tmp_path):
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(os.urandom(300))
+    with pytest.raises(ValueError, match="not a GeoPose model file"):
+        load_model(junk)
+    plain = tmp_path / "plain.pt"
+    torch.save({"a": torch.zeros(2)}, plain)
+    with pytest.raises(ValueError, match="not a GeoPose model file"):
+        load_model(plain)
+    with pytest.raises(FileNotFoundError):
+        load_model(tmp_path / "missing.pt")
+
+
+# ------------------------------------------------------- checkpoint import
+class Exploit:
+    """Pickles as a call to os.system that would create a marker file."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+class LightningLikeHparams(dict):
+    """A dict subclass with extra state, like Lightning's AttributeDict."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.note = "extra"
+
+
+def fake_lightning_checkpoint(path: Path, module, marker: Path) -> Path:
+    state = collections.OrderedDict(module.state_dict())
+    if isinstance(module, RefineNet):
+        state["criterion.gncc.sobel.filter.weight"] = torch.randn(2, 1, 3, 3)
+    torch.save(
+        {
+            "epoch": 3,
+            "global_step": 12,
+            "pytorch-lightning_version": "2.1.0",
+            "state_dict": state,
+            "callbacks": {"ModelCheckpoint": Exploit(marker)},
+            "hyper_parameters": LightningLikeHparams(lr=1e-4, backbone=torch.nn.Linear(2, 2)),
+            "optimizer_states": [{"state": {0: {"exp_avg": torch.zeros(3)}}}],
+        },
+        path,
+    )
+    return path
+
+
+@pytest.mark.parametrize("factory", [small_init, small_refine])
+def test_import_checkpoint_runs_no_pickled_code(tmp_path, factory):
+    module = factory()
+    marker = tmp_path / "pwned"
+    ckpt = fake_lightning_checkpoint(tmp_path / "my_run.ckpt", module, marker)
+    # Sanity: the exploit is real when unpickled normally.
+    torch.load(ckpt, weights_only=False)
+    assert marker.exists()
+    marker.unlink()
+
+    state = read_checkpoint_state_dict(ckpt)
+    assert not marker.exists()
+    for key, value in module.state_dict().items():
+        assert torch.equal(state[key], value), key
+    out = import_checkpoint(ckpt, tmp_path / "models")
+    assert not marker.exists()
+    assert out == tmp_path / "models" / f"{module.config.kind}.pt"
+    header = read_model_header(out)
+    assert header["architecture"] == module.config.to_dict()
+    assert header["metadata"]["source_file"] == "my_run.ckpt" and "published" not in header["metadata"]
+    reloaded = load_model(out)
+    reloaded.load_state_dict(module.state_dict(), strict=True)  # same layout both ways
+    assert all(torch.equal(a, b) for a, b in zip(reloaded.state_dict().values(), module.state_dict().values()))
+
+
+def test_official_names_are_verified(tmp_path):
+    manifest = json.loads(PUBLISHED_MANIFEST.read_text())
+    ckpt = fake_lightning_checkpoint(tmp_path / "geopose_init.ckpt", small_init(), tmp_path / "m")
+    with pytest.raises(ValueError, match=r"named like the published geopose_init\.ckpt .* bytes"):
+        import_checkpoint(ckpt, tmp_path / "out.pt")
+    assert not (tmp_path / "out.pt").exists()
+    # Same size as listed but a different hash -> refused on SHA-256.
+    entry = manifest["files"]["geopose_init.ckpt"]
+    entry["bytes"] = ckpt.stat().st_size
+    fake_manifest = tmp_path / "manifest.json"
+    fake_manifest.write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="SHA-256"):
+        import_checkpoint(ckpt, tmp_path / "out.pt", manifest_path=fake_manifest)
+    # Source file name of the release is official too.
+    source = tmp_path / manifest["files"]["geopose_refine.ckpt"]["source_filename"]
+    fake_lightning_checkpoint(source, small_refine(), tmp_path / "m")
+    with pytest.raises(ValueError, match="geopose_refine.ckpt"):
+        import_checkpoint(source, tmp_path / "out.pt")
+
+
+def test_non_checkpoints_are_refused(tmp_path):
+    junk = tmp_path / "random.ckpt"
+    junk.write_bytes(os.urandom(4096))
+    with pytest.raises(ValueError, match="not a PyTorch checkpoint"):
+        import_checkpoint(junk, tmp_path / "o.pt")
+    archive = tmp_path / "notes.ckpt"
+    with zipfile.ZipFile(archive, "w") as z:
+        z.writestr("notes/readme.txt", "hello")
+    with pytest.raises(ValueError, match="not a PyTorch checkpoint"):
+        import_checkpoint(archive, tmp_path / "o.pt")
+    other = tmp_path / "other.ckpt"
+    torch.save({"state_dict": {"encoder.weight": torch.zeros(3)}}, other)
+    with pytest.raises(ValueError, match="neither a GeoPose-Init"):
+        import_checkpoint(other, tmp_path / "o.pt")
+    with pytest.raises(FileNotFoundError):
+        import_checkpoint(tmp_path / "absent.ckpt", tmp_path / "o.pt")
+
+
+def test_import_checkpoint_command(tmp_path, capsys):
+    ckpt = fake_lightning_checkpoint(tmp_path / "run.ckpt", small_init(), tmp_path / "m")
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["import-checkpoint", str(ckpt), "--out", str(tmp_path / "x.pt"), "--dtype", "float16"])
+    assert args.func(args) == 0
+    assert "x.pt" in capsys.readouterr().out
+    assert read_model_header(tmp_path / "x.pt")["storage_dtype"] == "float16"
+
+
+# ------------------------------------------------------------ ONNX backend
+def test_onnx_parity_with_torch(tmp_path):
+    torch.manual_seed(0)
+    init, refine = small_init(), small_refine()
+    px = 64
+    init_onnx = OnnxInitPredictor(export_onnx(init, tmp_path / "init.onnx", image_px=px))
+    refine_onnx = OnnxRefinePredictor(export_onnx(refine, image_px=px))
+    image = torch.rand(3, 1, px, px)
+    lateral = torch.tensor([True, False, True])
+    pose_t, view_t, logits_t = init.predict(image, lateral)
+    pose_o, view_o, logits_o = init_onnx.predict(image, lateral)
+    assert torch.equal(view_t, view_o)
+    assert torch.allclose(logits_t, logits_o, atol=1e-4)
+    raw_t, _ = init.forward_all_views(normalize_minmax(image))
+    raw_o = init_onnx.session.run(None, {"image": normalize_minmax(image).numpy()})[0]
+    assert torch.allclose(raw_t, torch.from_numpy(raw_o), atol=1e-4)
+    # Pose parity: rotation 1e-4, translation scaled by 100 mm -> 1e-2 mm.
+    assert torch.allclose(pose_t[:, :3, :3], pose_o[:, :3, :3], atol=1e-4)
+    assert torch.allclose(pose_t[:, :3, 3], pose_o[:, :3, 3], atol=1e-2)
+    target, render = torch.rand(3, 1, px, px), torch.rand(3, 1, px, px)
+    view = torch.tensor([0, 1, 2])
+    D_t = refine.predict_residual(target, render, view)
+    D_o = refine_onnx.predict_residual(target, render, view)
+    assert torch.allclose(D_t, D_o, atol=1e-4)
+    with pytest.raises(ValueError, match="not a GeoPose-Refine"):
+        OnnxRefinePredictor(tmp_path / "init.onnx")
+
+
+def test_make_predictors_both_backends_agree(tmp_path):
+    save_model(small_init(), tmp_path / "a.pt")
+    save_model(small_refine(), tmp_path / "b.pt")
+    image = torch.rand(2, 1, 256, 256)
+    results = {}
+    for backend in ("torch", "onnxruntime"):
+        init, refine = make_predictors(tmp_path, backend=backend)
+        pose, view, _ = init.predict(image, torch.tensor([True, False]))
+        results[backend] = (pose, view, refine.predict_residual(image, image.flip(-1), view))
+    assert torch.equal(results["torch"][1], results["onnxruntime"][1])
+    assert torch.allclose(results["torch"][0][:, :3, :3], results["onnxruntime"][0][:, :3, :3], atol=1e-4)
+    assert torch.allclose(results["torch"][2], results["onnxruntime"][2], atol=1e-4)
+    with pytest.raises(ValueError, match="backend"):
+        make_predictors(tmp_path, backend="tensorrt")
+    (tmp_path / "b.pt").unlink()
+    with pytest.raises(FileNotFoundError, match="no refine model"):
+        make_predictors(tmp_path)
