@@ -43,6 +43,8 @@ VIEW_EMBEDDING_DIM: Final = 16
 
 # ---------------------------------------------------------------- similarity
 MNCC_PATCH_PX: Final = 13
+#: Weight of the global NCC in mNCC; the local (patch) NCC gets the rest.
+MNCC_GLOBAL_WEIGHT: Final = 0.5
 NCC_EPS: Final = 1e-5
 
 # ------------------------------------------------------ inference schedules
