@@ -1,0 +1,119 @@
+"""Masks derived from a CT(A) in HU: the cranium and an approximate vessel mask.
+
+Both are threshold-and-morphology methods (no learning); they are meant for the
+DRR label channels and for evaluation on phantoms, not for diagnosis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+
+from .. import contract as C
+from ..volume import Volume
+from .io import sitk_from_volume
+
+__all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU"]
+
+#: Radius (mm) of the closing that seals sutures, foramina and thin bone before filling.
+CLOSING_RADIUS_MM = 7.0
+#: The cranium mask is computed on a grid no finer than this (mm), then mapped back.
+WORK_SPACING_MM = 1.5
+#: Contrast-filled lumen range (HU) accepted as vessel by the approximate vessel mask.
+VESSEL_HU_RANGE = (150.0, 700.0)
+#: Dense bone (HU): voxels within :data:`BONE_MARGIN_MM` of it are not vessel (partial-volume rim).
+DENSE_BONE_HU = 700.0
+BONE_MARGIN_MM = 2.5
+#: Vessel components smaller than this (mm^3) are dropped as noise.
+MIN_VESSEL_COMPONENT_MM3 = 10.0
+
+
+def _radius_vox(radius_mm: float, spacing_mm: tuple[float, float, float]) -> list[int]:
+    return [max(1, int(round(radius_mm / s))) for s in spacing_mm]
+
+
+def _largest_component(mask: sitk.Image) -> sitk.Image:
+    cc = sitk.ConnectedComponent(mask, True)
+    relabelled = sitk.RelabelComponent(cc, sortByObjectSize=True)
+    return sitk.Cast(relabelled == 1, sitk.sitkUInt8)
+
+
+def _fill_slicewise(mask: np.ndarray, axis: int) -> np.ndarray:
+    """Fill 2D holes in every slice of ``mask`` ([k, j, i] array) taken across ``axis``."""
+    out = mask.copy()
+    for n in range(mask.shape[axis]):
+        sl = [slice(None)] * 3
+        sl[axis] = n
+        plane = mask[tuple(sl)]
+        if plane.any():
+            filled = sitk.BinaryFillhole(sitk.GetImageFromArray(plane.astype(np.uint8)), fullyConnected=False)
+            out[tuple(sl)] = sitk.GetArrayFromImage(filled)
+    return out
+
+
+def _superior_array_axis(volume: Volume) -> int:
+    """Array axis ([k, j, i] order) whose voxel direction is closest to the RAS z axis."""
+    z_component = np.abs(volume.ijk_to_ras[2, :3]) / np.asarray(volume.spacing_mm)
+    return 2 - int(np.argmax(z_component))
+
+
+def cranium_mask_from_cta(volume: Volume, *, bone_hu: float = C.HU_BONE_MIN) -> Volume:
+    """Skull plus intracranial region as a uint8 {0, 1} label map on the CTA grid.
+
+    Method (on a grid averaged down to voxels of at least 1.5 mm, result mapped back
+    by nearest neighbour): (1) bone = HU > ``bone_hu`` (the DRR bone threshold, 350 HU);
+    (2) binary closing with a ~7 mm ellipsoid (per-axis radius from the spacing) to seal sutures,
+    foramina and thin bone; (3) the largest 26-connected bone component (the skull,
+    dropping the table and loose fragments; the cervical spine stays if it touches);
+    (4) holes filled in every axial slice (slices across the array axis closest to
+    RAS superior), which fills the intracranial space wherever the skull forms a ring,
+    then a closing along that axis (bridges slices whose ring has a gap) and a 3D hole
+    fill; (5) the largest component again. Facial bones that form rings
+    in axial slices (maxilla, mandible) are included with their enclosed cavities.
+    """
+    if not np.any(volume.array > bone_hu):
+        raise ValueError(f"no voxel above {bone_hu:g} HU: the CTA shows no bone, so no cranium mask can be derived; supply a mask")
+    full = sitk_from_volume(volume)
+    factors = [max(1, int(WORK_SPACING_MM // s)) for s in volume.spacing_mm]
+    work = sitk.BinShrink(full, factors) if max(factors) > 1 else full
+    spacing = work.GetSpacing()
+    bone = sitk.Cast(work > bone_hu, sitk.sitkUInt8)
+    closed = sitk.BinaryMorphologicalClosing(bone, _radius_vox(CLOSING_RADIUS_MM, spacing), sitk.sitkBall)
+    skull = sitk.GetArrayFromImage(_largest_component(closed)).astype(bool)
+    axis = _superior_array_axis(volume)
+    filled = sitk.GetImageFromArray(_fill_slicewise(skull, axis).astype(np.uint8))
+    line = [0, 0, 0]
+    line[2 - axis] = _radius_vox(CLOSING_RADIUS_MM, spacing)[2 - axis]
+    bridged = sitk.BinaryMorphologicalClosing(filled, line, sitk.sitkBox)
+    mask = _largest_component(sitk.BinaryFillhole(bridged, fullyConnected=False))
+    mask.CopyInformation(work)
+    if work is not full:
+        mask = sitk.Resample(mask, full, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
+    out = sitk.GetArrayFromImage(mask).astype(np.uint8)
+    return volume.like(out, kind="cranium_mask", method="bone threshold + closing + largest component + axial fill")
+
+
+def vessel_mask_from_cta(volume: Volume, cranium: Volume) -> Volume:
+    """APPROXIMATE contrast-filled vessel mask (uint8 {0, 1}) inside the cranium.
+
+    Voxels in :data:`VESSEL_HU_RANGE` (150..700 HU) inside ``cranium`` that lie more
+    than :data:`BONE_MARGIN_MM` from dense bone (> 700 HU; this drops the partial-volume
+    rim of the skull and the skull base where bone and lumen overlap in HU), keeping
+    connected components of at least :data:`MIN_VESSEL_COMPONENT_MM3`. Calcifications,
+    enhancing dura/sinuses and vessels touching bone are not separated: use it as an
+    approximation (e.g. a DRR vessel channel), never as a segmentation.
+    """
+    if cranium.array.shape != volume.array.shape:
+        raise ValueError(f"cranium mask shape {cranium.array.shape} does not match the CTA grid {volume.array.shape}")
+    lo, hi = VESSEL_HU_RANGE
+    a = volume.array
+    candidate = (a >= lo) & (a <= hi) & (cranium.array > 0)
+    dense = sitk_from_volume(volume.like((a > DENSE_BONE_HU).astype(np.uint8)))
+    near_bone = sitk.GetArrayFromImage(sitk.BinaryDilate(dense, _radius_vox(BONE_MARGIN_MM, volume.spacing_mm), sitk.sitkBall))
+    candidate &= near_bone == 0
+    voxel_mm3 = float(np.prod(volume.spacing_mm))
+    min_voxels = max(1, int(np.ceil(MIN_VESSEL_COMPONENT_MM3 / voxel_mm3)))
+    cc = sitk.ConnectedComponent(sitk.GetImageFromArray(candidate.astype(np.uint8)), True)
+    kept = sitk.RelabelComponent(cc, minimumObjectSize=min_voxels)
+    out = (sitk.GetArrayFromImage(kept) > 0).astype(np.uint8)
+    return volume.like(out, kind="vessel_mask", method="approximate: contrast HU range away from bone inside the cranium")
