@@ -390,3 +390,29 @@ def test_make_predictors_both_backends_agree(tmp_path):
     (tmp_path / "b.pt").unlink()
     with pytest.raises(FileNotFoundError, match="no refine model"):
         make_predictors(tmp_path)
+
+
+def test_cli_reports_bad_checkpoint_without_traceback(tmp_path, monkeypatch, capsys):
+    from geopose import cli
+
+    monkeypatch.setattr(cli, "COMMANDS", [("geopose.nets.checkpoint", "register")])
+    junk = tmp_path / "geopose_init.ckpt"
+    junk.write_bytes(os.urandom(1000))
+    assert cli.main(["import-checkpoint", str(junk), "--out", str(tmp_path / "o.pt")]) == 2
+    err = capsys.readouterr().err
+    assert "named like the published geopose_init.ckpt" in err and "Traceback" not in err
+    assert not (tmp_path / "o.pt").exists()
+
+
+@pytest.mark.gpu
+def test_predictors_on_cuda_match_cpu():
+    init, refine = small_init(), small_refine()
+    image = torch.rand(2, 1, 128, 128)
+    pose_cpu, view_cpu, _ = init.predict(image, torch.tensor([True, False]))
+    D_cpu = refine.predict_residual(image, image.flip(-1), view_cpu)
+    init_gpu, refine_gpu = init.to("cuda"), refine.to("cuda")
+    pose_gpu, view_gpu, _ = init_gpu.predict(image.cuda(), torch.tensor([True, False], device="cuda"))
+    D_gpu = refine_gpu.predict_residual(image.cuda(), image.flip(-1).cuda(), view_gpu)
+    assert torch.equal(view_gpu.cpu(), view_cpu)
+    assert torch.allclose(pose_gpu[:, :3, :3].cpu(), pose_cpu[:, :3, :3], atol=1e-3)
+    assert torch.allclose(D_gpu.cpu(), D_cpu, atol=1e-3)
