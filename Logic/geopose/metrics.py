@@ -12,13 +12,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 import SimpleITK as sitk
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from .contract import MNCC_GLOBAL_WEIGHT, MNCC_PATCH_PX, MODEL_SDD_MM, NCC_EPS, VIEW_NAMES
-from .geometry.rigid import matrix_to_euler_zyx, params_from_pose, rotation_angle_rad
+from .geometry.rigid import RigidTransform, matrix_to_euler_zyx, params_from_pose, rotation_angle_rad
 
 __all__ = [
     "ncc",
@@ -114,7 +115,7 @@ class MPCD:
     isocentre_mm: float
 
 
-def _as_points(name: str, points) -> np.ndarray:
+def _as_points(name: str, points: ArrayLike) -> np.ndarray:
     arr = np.asarray(points, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 2:
         raise ValueError(f"{name} must be (N, 2) (row, col) pixel coordinates, got shape {arr.shape}")
@@ -132,7 +133,7 @@ def _nearest_distances(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 
 def mpcd(
-    projected_px, reference_px, spacing_mm: float | tuple[float, float], sod_mm: float, sdd_mm: float
+    projected_px: ArrayLike, reference_px: ArrayLike, spacing_mm: float | tuple[float, float], sod_mm: float, sdd_mm: float
 ) -> MPCD:
     """Mean distance from projected CTA centreline points to the nearest reference DSA centreline point.
 
@@ -149,25 +150,25 @@ def mpcd(
     return MPCD(px=px, detector_mm=mm, isocentre_mm=mm * sod_mm / sdd_mm)
 
 
-def _as_mask(name: str, mask) -> np.ndarray:
+def _as_mask(name: str, mask: ArrayLike | Tensor) -> np.ndarray:
     arr = np.asarray(mask.detach().cpu() if isinstance(mask, Tensor) else mask)
     if arr.ndim != 2:
         raise ValueError(f"{name} must be a 2-D mask, got shape {arr.shape}")
     return arr > 0
 
 
-def mask_points(mask) -> np.ndarray:
+def mask_points(mask: ArrayLike | Tensor) -> np.ndarray:
     """(row, col) pixel coordinates ``(N, 2)`` of the non-zero pixels of a 2-D mask."""
     return np.argwhere(_as_mask("mask", mask)).astype(np.float64)
 
 
-def skeletonize(mask) -> np.ndarray:
+def skeletonize(mask: ArrayLike | Tensor) -> np.ndarray:
     """One-pixel-wide skeleton (bool, same shape) of a 2-D mask by morphological thinning."""
     image = sitk.GetImageFromArray(_as_mask("mask", mask).astype(np.uint8))
     return sitk.GetArrayFromImage(sitk.BinaryThinning(image)).astype(bool)
 
 
-def cldice(pred_mask, ref_mask) -> float:
+def cldice(pred_mask: ArrayLike | Tensor, ref_mask: ArrayLike | Tensor) -> float:
     """Centreline Dice (Shit et al. 2021) of two 2-D vessel masks, in [0, 1].
 
     ``2 Tprec Tsens / (Tprec + Tsens)`` with ``Tprec = |S(pred) & ref| / |S(pred)|``
@@ -189,14 +190,14 @@ def cldice(pred_mask, ref_mask) -> float:
 
 
 # ---------------------------------------------------------------- pose errors
-def _as_poses(name: str, pose) -> Tensor:
-    m = pose.matrix if hasattr(pose, "matrix") else torch.as_tensor(pose)
+def _as_poses(name: str, pose: RigidTransform | Tensor) -> Tensor:
+    m = pose.matrix if isinstance(pose, RigidTransform) else torch.as_tensor(pose)
     if m.shape[-2:] != (4, 4):
         raise ValueError(f"{name} must be (B, 4, 4) poses, got shape {tuple(m.shape)}")
     return m.reshape(-1, 4, 4).to(torch.float64)
 
 
-def double_geodesic_mm(pred, ref, sdd_mm: float = MODEL_SDD_MM) -> Tensor:
+def double_geodesic_mm(pred: RigidTransform | Tensor, ref: RigidTransform | Tensor, sdd_mm: float = MODEL_SDD_MM) -> Tensor:
     """``sqrt((SDD/2 * angle)^2 + |c1 - c2|^2)`` (mm) ``(B,)``; ``c`` = source position (world, mm)."""
     a, b = _as_poses("pred", pred), _as_poses("ref", ref)
     angle = rotation_angle_rad(a[:, :3, :3].transpose(-1, -2) @ b[:, :3, :3])
@@ -215,7 +216,7 @@ class PoseErrors:
     double_geodesic_mm: Tensor
 
 
-def pose_errors(pred, ref, sdd_mm: float = MODEL_SDD_MM) -> PoseErrors:
+def pose_errors(pred: RigidTransform | Tensor, ref: RigidTransform | Tensor, sdd_mm: float = MODEL_SDD_MM) -> PoseErrors:
     """Errors of predicted poses against references (both ``(B, 4, 4)`` or RigidTransform)."""
     a, b = _as_poses("pred", pred), _as_poses("ref", ref)
     if a.shape != b.shape:
@@ -234,7 +235,7 @@ def pose_errors(pred, ref, sdd_mm: float = MODEL_SDD_MM) -> PoseErrors:
     )
 
 
-def view_accuracy(pred, ref) -> float:
+def view_accuracy(pred: ArrayLike | Tensor, ref: ArrayLike | Tensor) -> float:
     """Fraction of view labels (0 LAT-, 1 PA, 2 LAT+) predicted correctly."""
     p, r = torch.as_tensor(pred).reshape(-1), torch.as_tensor(ref).reshape(-1)
     if p.shape != r.shape or p.numel() == 0:

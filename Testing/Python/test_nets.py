@@ -219,6 +219,11 @@ def test_model_file_round_trip(tmp_path):
     assert set(payload) == {"header", "state_dict"}
     with pytest.raises(ValueError, match="JSON"):
         save_model(net, tmp_path / "bad.pt", {"x": object()})
+    with torch.no_grad():
+        net.net.fc.pose.bias.fill_(1e6)  # beyond float16 range
+    with pytest.raises(ValueError, match="not finite when stored as float16"):
+        save_model(net, tmp_path / "overflow.pt", dtype="float16")
+    assert not (tmp_path / "overflow.pt").exists()
 
 
 def test_load_model_rejects_foreign_files(tmp_path):
@@ -333,6 +338,9 @@ def test_non_checkpoints_are_refused(tmp_path):
         import_checkpoint(other, tmp_path / "o.pt")
     with pytest.raises(FileNotFoundError):
         import_checkpoint(tmp_path / "absent.ckpt", tmp_path / "o.pt")
+    good = fake_lightning_checkpoint(tmp_path / "run.ckpt", small_init(), tmp_path / "m")
+    with pytest.raises(ValueError, match="must be a .pt file"):
+        import_checkpoint(good, tmp_path / "model.onnx")
 
 
 def test_import_checkpoint_command(tmp_path, capsys):

@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 
-from .model_io import save_model
+from .model_io import MODEL_SUFFIX, save_model
 from .models import InitNet, NetConfig, RefineNet, build_model
 from .resnet import BLOCKS_PER_STAGE, BackboneConfig
 
@@ -158,6 +158,8 @@ def read_checkpoint_state_dict(path: str | os.PathLike) -> dict[str, torch.Tenso
 
 def load_manifest(path: str | os.PathLike = PUBLISHED_MANIFEST) -> dict[str, Any]:
     """The published checkpoints' manifest (file names, sizes, SHA-256)."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"the published checkpoint manifest {path} is missing; reinstall GeoPose")
     with open(path, encoding="utf-8") as handle:
         return json.load(handle)
 
@@ -234,9 +236,11 @@ def import_checkpoint(
 
     ``out`` is a ``.pt`` file or a directory (then ``<kind>.pt`` inside it).
     """
-    checkpoint = Path(checkpoint)
+    checkpoint, out = Path(checkpoint), Path(out)
     if not checkpoint.is_file():
         raise FileNotFoundError(f"checkpoint {checkpoint} does not exist")
+    if out.suffix not in ("", MODEL_SUFFIX) and not out.is_dir():
+        raise ValueError(f"--out {out} must be a {MODEL_SUFFIX} file or a directory")
     manifest = load_manifest(manifest_path)
     official = official_entry(checkpoint, manifest)
     if official is not None:
@@ -248,9 +252,8 @@ def import_checkpoint(
         metadata.update(
             published=name, sha256=entry["sha256"], contract=entry.get("contract"), doi=manifest.get("zenodo_doi")
         )
-    out = Path(out)
     if out.is_dir() or out.suffix == "":
-        out = out / f"{module.config.kind}.pt"
+        out = out / f"{module.config.kind}{MODEL_SUFFIX}"
     return save_model(module, out, metadata, dtype=dtype)
 
 

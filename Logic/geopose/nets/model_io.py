@@ -54,6 +54,9 @@ def save_model(
         name: (t.detach().to("cpu", STORAGE_DTYPES[dtype]) if t.is_floating_point() else t.detach().cpu()).contiguous()
         for name, t in module.state_dict().items()
     }
+    overflow = [name for name, t in state.items() if t.is_floating_point() and not torch.isfinite(t).all()]
+    if overflow:
+        raise ValueError(f"weights {overflow[:3]} are not finite when stored as {dtype}; store as float32")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"header": header_text, "state_dict": state}, path)
