@@ -379,6 +379,10 @@ def test_onnx_parity_with_torch(tmp_path):
     assert torch.allclose(D_t, D_o, atol=1e-4)
     with pytest.raises(ValueError, match="not a GeoPose-Refine"):
         OnnxRefinePredictor(tmp_path / "init.onnx")
+    with pytest.raises(ValueError, match=r"\(B, 1, 64, 64\) batch for this ONNX model"):
+        init_onnx.predict(torch.rand(1, 1, 32, 32))
+    with pytest.raises(ValueError, match="pass pairs"):
+        refine_onnx.predict_residual(target, render[:2], view)
 
 
 def test_make_predictors_both_backends_agree(tmp_path):

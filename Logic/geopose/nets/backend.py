@@ -49,6 +49,16 @@ def _numpy(x: Tensor) -> np.ndarray:
     return x.detach().to("cpu", torch.float32).contiguous().numpy()
 
 
+def _check_graph_images(session, name: str, image: Tensor) -> None:
+    """Images must be ``(B, 1, H, W)`` with the (H, W) the graph was exported for."""
+    expected = tuple(session.get_inputs()[0].shape[1:])
+    if image.ndim != 4 or tuple(image.shape[1:]) != expected:
+        raise ValueError(
+            f"{name} must be a (B, {', '.join(map(str, expected))}) batch for this ONNX model, got shape {tuple(image.shape)}; "
+            "resample to the model detector or export the model for this size"
+        )
+
+
 class OnnxInitPredictor:
     """GeoPose-Init on onnxruntime (graph from :func:`export_onnx`)."""
 
@@ -59,8 +69,7 @@ class OnnxInitPredictor:
         self.session = _session(model, self.device)
 
     def predict(self, image: Tensor, is_lateral: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        if image.ndim != 4 or image.shape[1] != 1:
-            raise ValueError(f"image must be a (B, 1, H, W) batch, got shape {tuple(image.shape)}")
+        _check_graph_images(self.session, "image", image)
         raw_all, logits = self.session.run(None, {"image": _numpy(normalize_minmax(image))})
         raw_all = torch.from_numpy(raw_all).to(image.device)
         logits = torch.from_numpy(logits).to(image.device)
@@ -80,10 +89,9 @@ class OnnxRefinePredictor:
 
     def predict_residual(self, target: Tensor, render: Tensor, view: Tensor | int) -> Tensor:
         for name, image in (("target", target), ("render", render)):
-            if image.ndim != 4 or image.shape[1] != 1:
-                raise ValueError(f"{name} must be a (B, 1, H, W) batch, got shape {tuple(image.shape)}")
-        if target.shape != render.shape:
-            raise ValueError(f"target {tuple(target.shape)} and render {tuple(render.shape)} must have the same shape")
+            _check_graph_images(self.session, name, image)
+        if target.shape[0] != render.shape[0]:
+            raise ValueError(f"target has {target.shape[0]} images and render {render.shape[0]}; pass pairs")
         labels = as_view_labels(view, target.shape[0]).cpu().numpy()
         (raw,) = self.session.run(
             None,
