@@ -68,15 +68,24 @@ def local_ncc(a: Tensor, b: Tensor, patch_px: int = MNCC_PATCH_PX, eps: float = 
     _check_pair(a, b)
     if min(a.shape[-2:]) < patch_px:
         raise ValueError(f"images of {tuple(a.shape[-2:])} px are smaller than the {patch_px} px NCC patch")
-    # Removing each image's global mean leaves patch statistics unchanged and limits cancellation.
-    a = a - a.mean(dim=(-2, -1), keepdim=True)
-    b = b - b.mean(dim=(-2, -1), keepdim=True)
+    # Patch moments come from E[x^2] - E[x]^2, which cancels badly in float32 for
+    # large values: remove each image's mean and scale it to unit range (as the
+    # published models' min-max inputs), then clamp to the valid NCC range.
+    a, b = _unit_range(a), _unit_range(b)
     pool = lambda x: F.avg_pool2d(x, patch_px, stride=1)  # noqa: E731
     mu_a, mu_b = pool(a), pool(b)
     var_a = (pool(a * a) - mu_a * mu_a).clamp_min(0)
     var_b = (pool(b * b) - mu_b * mu_b).clamp_min(0)
     cov = pool(a * b) - mu_a * mu_b
-    return (cov / torch.sqrt((var_a + eps) * (var_b + eps))).mean(dim=(-2, -1)).mean(-1)
+    patch_ncc = (cov / torch.sqrt((var_a + eps) * (var_b + eps))).clamp(-1.0, 1.0)
+    return patch_ncc.mean(dim=(-2, -1)).mean(-1)
+
+
+def _unit_range(x: Tensor) -> Tensor:
+    """Zero mean and unit (max - min) range per image channel."""
+    x = x - x.mean(dim=(-2, -1), keepdim=True)
+    span = x.amax(dim=(-2, -1), keepdim=True) - x.amin(dim=(-2, -1), keepdim=True)
+    return x / span.clamp_min(1e-12)
 
 
 def mncc(a: Tensor, b: Tensor, patch_px: int = MNCC_PATCH_PX, eps: float = NCC_EPS) -> Tensor:

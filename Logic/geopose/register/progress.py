@@ -1,0 +1,29 @@
+"""Progress reporting and cancellation shared by every registration stage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+#: ``progress(stage, fraction_done, message)``; fraction in [0, 1] within the stage.
+ProgressCallback = Callable[[str, float, str], None]
+#: Returns True when the user asked to stop.
+CancelCheck = Callable[[], bool]
+
+
+class RegistrationCancelled(RuntimeError):
+    """Raised inside a stage when the cancel hook returns True."""
+
+
+@dataclass
+class Monitor:
+    """Bundles the optional progress callback and cancel hook for a stage."""
+
+    progress: Optional[ProgressCallback] = None
+    cancel: Optional[CancelCheck] = None
+
+    def step(self, stage: str, fraction: float, message: str = "") -> None:
+        if self.cancel is not None and self.cancel():
+            raise RegistrationCancelled(f"registration cancelled during {stage}")
+        if self.progress is not None:
+            self.progress(stage, min(max(fraction, 0.0), 1.0), message)

@@ -1,0 +1,52 @@
+"""Per-view quality flag: tells a user when not to trust a registration.
+
+Rule (thresholds named below; set on phantom runs, provisional for real data):
+
+* ``failed`` when the final mNCC is below ``MNCC_FAILED`` or the silhouette Dice
+  (projected CTA cranium vs DSA cranium mask) is below ``DICE_FAILED``;
+* ``doubtful`` when mNCC < ``MNCC_OK``, Dice < ``DICE_OK``, or the final pose
+  moved more than ``AGREEMENT_DEG`` / ``AGREEMENT_MM`` away from the learned
+  estimate (Init + Refine), i.e. the stages disagree;
+* ``ok`` otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Final
+
+MNCC_FAILED: Final = 0.15
+MNCC_OK: Final = 0.35
+DICE_FAILED: Final = 0.6
+DICE_OK: Final = 0.85
+AGREEMENT_DEG: Final = 6.0
+AGREEMENT_MM: Final = 20.0
+
+
+@dataclass(frozen=True)
+class Quality:
+    flag: str
+    reasons: tuple[str, ...]
+
+    def as_dict(self) -> dict:
+        return {"flag": self.flag, "reasons": list(self.reasons)}
+
+
+def assess(mncc: float, silhouette_dice: float, stage_rotation_deg: float, stage_translation_mm: float) -> Quality:
+    """Apply the rule above to one view's numbers."""
+    failed, doubtful = [], []
+    if mncc < MNCC_FAILED:
+        failed.append(f"final mNCC {mncc:.2f} < {MNCC_FAILED}")
+    elif mncc < MNCC_OK:
+        doubtful.append(f"final mNCC {mncc:.2f} < {MNCC_OK}")
+    if silhouette_dice < DICE_FAILED:
+        failed.append(f"silhouette Dice {silhouette_dice:.2f} < {DICE_FAILED}")
+    elif silhouette_dice < DICE_OK:
+        doubtful.append(f"silhouette Dice {silhouette_dice:.2f} < {DICE_OK}")
+    if stage_rotation_deg > AGREEMENT_DEG or stage_translation_mm > AGREEMENT_MM:
+        doubtful.append(
+            f"optimisation moved {stage_rotation_deg:.1f} deg / {stage_translation_mm:.1f} mm from the learned estimate"
+        )
+    if failed:
+        return Quality("failed", tuple(failed + doubtful))
+    return Quality("doubtful" if doubtful else "ok", tuple(doubtful))
