@@ -1,0 +1,186 @@
+"""Registration outputs as MRML nodes: pose transforms, C-arm cameras and frustums,
+projected segmentations on the detector plane, and the result table.
+
+Poses here are camera-to-world 4x4 matrices (mm): ``pose_ras`` maps the camera
+frame to patient RAS, ``pose_centred`` to the centred CTA frame.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping, Sequence
+
+import numpy as np
+import slicer
+import torch
+import vtk
+
+from ..geometry.carm import AP_REORIENT, Detector
+from ..geometry.rigid import RigidTransform
+from ..render import DRR
+from ..volume import Volume
+from .plane import detector_ijk_to_ras, detector_index_to_camera
+from .scene import matrix_from_vtk, matrix_to_vtk
+from .volumes import segmentation_from_masks
+
+__all__ = [
+    "PROJECTION_THRESHOLD_VOXELS",
+    "pose_transform_node",
+    "transform_matrix",
+    "camera_to_ras_points",
+    "camera_node",
+    "frustum_model_node",
+    "project_labels",
+    "projected_segmentation_node",
+    "result_table_node",
+]
+
+#: A pixel belongs to a projected segment when its ray runs this many voxel sizes through it.
+PROJECTION_THRESHOLD_VOXELS = 0.25
+#: Upper bound on ray samples held in memory at once while projecting segments.
+_MAX_SAMPLES_PER_TILE = 1 << 23
+
+
+def pose_transform_node(scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, name: str) -> "slicer.vtkMRMLLinearTransformNode":
+    """A linear transform node whose to-parent matrix is the camera-to-RAS pose."""
+    node = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", name)
+    node.SetMatrixTransformToParent(matrix_to_vtk(pose_ras))
+    return node
+
+
+def transform_matrix(node: "slicer.vtkMRMLTransformNode") -> np.ndarray:
+    """The to-parent 4x4 matrix of a linear transform node."""
+    m = vtk.vtkMatrix4x4()
+    node.GetMatrixTransformToParent(m)
+    return matrix_from_vtk(m)
+
+
+def camera_to_ras_points(pose_ras: np.ndarray, detector: Detector) -> dict[str, np.ndarray]:
+    """RAS positions (mm) of the source, detector centre and the four detector corners
+    (pixel-centre corners, rows 0/H-1 x cols 0/W-1), and the image-up direction (row 0 side)."""
+    m = np.asarray(pose_ras, dtype=float) @ AP_REORIENT.numpy()
+    idx = detector_index_to_camera(detector)
+    h, w = detector.rows - 1, detector.cols - 1
+    corners_ij = np.array([[0, 0, 0, 1], [w, 0, 0, 1], [w, h, 0, 1], [0, h, 0, 1]], dtype=float)
+    corners = (m @ idx @ corners_ij.T).T[:, :3]
+    centre = (m @ idx @ np.array([w / 2, h / 2, 0.0, 1.0]))[:3]
+    return {"source": m[:3, 3].copy(), "centre": centre, "corners": corners, "up": m[:3, :3] @ np.array([0.0, 1.0, 0.0])}
+
+
+def camera_node(scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, detector: Detector, name: str) -> "slicer.vtkMRMLCameraNode":
+    """A camera at the X-ray source looking at the detector centre, image row 0 up,
+    with the detector's vertical field of view (deg): the 3D view then sees what the C-arm sees."""
+    pts = camera_to_ras_points(pose_ras, detector)
+    node = scene.AddNewNodeByClass("vtkMRMLCameraNode", name)
+    node.SetPosition(*pts["source"])
+    node.SetFocalPoint(*pts["centre"])
+    node.SetViewUp(*pts["up"])
+    half_height_mm = detector.rows * detector.spacing_mm[0] / 2
+    node.SetViewAngle(math.degrees(2 * math.atan(half_height_mm / detector.sdd_mm)))
+    return node
+
+
+def frustum_model_node(
+    scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, detector: Detector, name: str, color=(1.0, 0.8, 0.0)
+) -> "slicer.vtkMRMLModelNode":
+    """Lines from the source to the detector corners plus the detector outline (RAS mm)."""
+    pts = camera_to_ras_points(pose_ras, detector)
+    points = vtk.vtkPoints()
+    points.InsertNextPoint(*pts["source"])
+    for c in pts["corners"]:
+        points.InsertNextPoint(*c)
+    lines = vtk.vtkCellArray()
+    for a, b in [(0, 1), (0, 2), (0, 3), (0, 4), (1, 2), (2, 3), (3, 4), (4, 1)]:
+        lines.InsertNextCell(2, (a, b))
+    poly = vtk.vtkPolyData()
+    poly.SetPoints(points)
+    poly.SetLines(lines)
+    node = scene.AddNewNodeByClass("vtkMRMLModelNode", name)
+    node.SetAndObservePolyData(poly)
+    node.CreateDefaultDisplayNodes()
+    node.GetDisplayNode().SetColor(*color)
+    return node
+
+
+def _row_tile(detector: Detector, r0: int, rows: int) -> Detector:
+    """The sub-detector made of rows ``r0 .. r0+rows-1`` (same pixel positions)."""
+    dy = detector.spacing_mm[0]
+    x0, y0 = detector.principal_offset_mm
+    shift = ((detector.rows - 1) / 2 - r0 - (rows - 1) / 2) * dy
+    return Detector(rows, detector.cols, detector.spacing_mm, detector.sdd_mm, (x0, y0 + shift))
+
+
+def project_labels(
+    labels: Volume, values: Sequence[int], pose_centred: np.ndarray, detector: Detector, threshold_mm: float | None = None
+) -> np.ndarray:
+    """Binary projections ``(len(values), H, W)`` of label-map regions onto the detector.
+
+    ``labels`` lies on the CTA grid (its centred frame is the poses' world frame). Each
+    region's indicator is ray-traced with the DRR renderer; a pixel is set when its ray
+    runs more than ``threshold_mm`` (default a quarter of the smallest voxel size) inside.
+    """
+    values = list(values)
+    out = np.zeros((len(values), detector.rows, detector.cols), dtype=bool)
+    masks = np.stack([labels.array == v for v in values]) if values else np.zeros((0,) + labels.array.shape, bool)
+    present = masks.any(axis=0)
+    if not present.any():
+        return out
+    nz = np.nonzero(present)
+    lo = [max(int(a.min()) - 1, 0) for a in nz]
+    hi = [min(int(a.max()) + 2, n) for a, n in zip(nz, present.shape)]
+    crop = masks[:, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.float32)
+    shift = np.eye(4)
+    shift[:3, 3] = (lo[2], lo[1], lo[0])  # (i, j, k) of the crop origin
+    ijk_to_world = labels.ijk_to_centred @ shift
+    spacing = np.asarray(labels.spacing_mm)
+    threshold = PROJECTION_THRESHOLD_VOXELS * spacing.min() if threshold_mm is None else float(threshold_mm)
+    drr = DRR(torch.from_numpy(crop), ijk_to_world, detector)
+    diag_mm = float(np.linalg.norm(np.asarray(crop.shape[:0:-1]) * spacing))
+    samples_per_ray = int(math.ceil(diag_mm / drr.step_mm)) + 1
+    tile = max(1, _MAX_SAMPLES_PER_TILE // (detector.cols * samples_per_ray * max(len(values), 1)))
+    pose = RigidTransform(torch.as_tensor(np.asarray(pose_centred, dtype=np.float64)).reshape(1, 4, 4))
+    with torch.no_grad():
+        for r0 in range(0, detector.rows, tile):
+            rows = min(tile, detector.rows - r0)
+            img = drr(pose, _row_tile(detector, r0, rows))[0].numpy()
+            out[:, r0:r0 + rows] = img > threshold
+    return out
+
+
+def projected_segmentation_node(
+    scene: "slicer.vtkMRMLScene",
+    labels: Volume,
+    segments: Mapping[int, tuple[str, tuple[float, float, float]]],
+    pose_centred: np.ndarray,
+    detector: Detector,
+    name: str,
+) -> "slicer.vtkMRMLSegmentationNode":
+    """Segmentation on the detector plane (same grid as the DSA MAP node of this pose):
+    one segment per ``{label value: (name, rgb)}``, the projection of that region."""
+    proj = project_labels(labels, list(segments), pose_centred, detector)
+    pose_ras = labels.centred_to_ras @ np.asarray(pose_centred, dtype=float)
+    masks = {seg_name: (proj[n][None], color) for n, (seg_name, color) in enumerate(segments.values())}
+    return segmentation_from_masks(scene, masks, detector_ijk_to_ras(detector, pose_ras), name)
+
+
+def result_table_node(scene: "slicer.vtkMRMLScene", rows: Sequence[Mapping[str, object]], name: str) -> "slicer.vtkMRMLTableNode":
+    """A table with one row per mapping; numeric columns are doubles, others strings.
+    Columns appear in first-seen order; a missing value is NaN (numeric) or empty."""
+    columns: list[str] = []
+    for row in rows:
+        columns += [k for k in row if k not in columns]
+    table = vtk.vtkTable()
+    for col in columns:
+        vals = [row.get(col) for row in rows]
+        numeric = all(v is None or (isinstance(v, (int, float, np.number)) and not isinstance(v, bool)) for v in vals)
+        arr = vtk.vtkDoubleArray() if numeric else vtk.vtkStringArray()
+        arr.SetName(col)
+        for v in vals:
+            if numeric:
+                arr.InsertNextValue(float("nan") if v is None else float(v))
+            else:
+                arr.InsertNextValue("" if v is None else str(v))
+        table.AddColumn(arr)
+    node = scene.AddNewNodeByClass("vtkMRMLTableNode", name)
+    node.SetAndObserveTable(table)
+    return node

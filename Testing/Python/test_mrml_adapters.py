@@ -1,0 +1,226 @@
+"""MRML adapters on real Slicer MRML classes (slicer-core wheel): volumes,
+segmentations, detector planes, DSA sequences, output nodes and .mrb round trips."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+slicer = pytest.importorskip("slicer", reason="needs the slicer-core wheel (Slicer's MRML in Python)")
+
+from geopose import contract as C  # noqa: E402
+from geopose.geometry import CArmAngles, Detector, RigidTransform, isopose, project_points, source_and_detector_points  # noqa: E402
+from geopose.volume import Volume  # noqa: E402
+from geopose import mrml  # noqa: E402
+from geopose.mrml.plane import detector_index_to_camera  # noqa: E402
+
+
+def _cta() -> tuple[Volume, Volume]:
+    """A small oblique CTA (HU) with a vessel tube (label 1) and a blob (label 2)."""
+    rng = np.random.default_rng(0)
+    k, j, i = 30, 36, 40
+    hu = rng.normal(40, 5, (k, j, i)).astype(np.int16)
+    lab = np.zeros((k, j, i), np.uint8)
+    kk, jj, ii = np.meshgrid(np.arange(k), np.arange(j), np.arange(i), indexing="ij")
+    tube = (jj - 18) ** 2 + (kk - 15) ** 2 <= 4
+    tube &= (ii > 4) & (ii < 36)
+    lab[tube] = 1
+    lab[(ii - 10) ** 2 + (jj - 8) ** 2 + (kk - 22) ** 2 <= 9] = 2
+    hu[lab > 0] = 400
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    c, s = math.cos(0.2), math.sin(0.2)
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]) @ R
+    m = np.eye(4)
+    m[:3, :3] = R @ np.diag([0.9, 1.1, 1.5])
+    m[:3, 3] = (12.0, -30.0, 7.0)
+    cta = Volume(hu, m)
+    return cta, cta.like(lab)
+
+
+def _pose(view: int = C.VIEW_PA, dr=(0.05, -0.03, 0.02), dt=(3.0, -5.0, 2.0)) -> np.ndarray:
+    base = isopose(view, dtype=torch.float64)
+    d = RigidTransform.from_euler_zyx(torch.tensor([dr], dtype=torch.float64), torch.tensor([dt], dtype=torch.float64))
+    return (d @ base).matrix[0].numpy()
+
+
+DET = Detector(48, 56, (0.6, 0.5), 1000.0, principal_offset_mm=(1.5, -2.0))
+
+
+@pytest.fixture()
+def scene():
+    return mrml.new_scene()
+
+
+def test_volume_round_trip_keeps_array_affine_and_input(scene):
+    cta, _ = _cta()
+    before = cta.array.copy()
+    node = mrml.volume_to_node(scene, cta, "CTA")
+    back = mrml.volume_from_node(node)
+    np.testing.assert_array_equal(back.array, cta.array)
+    assert back.array.dtype == cta.array.dtype
+    np.testing.assert_allclose(back.ijk_to_ras, cta.ijk_to_ras, atol=1e-9)
+    np.testing.assert_array_equal(cta.array, before)
+    back.array[0, 0, 0] = 1234  # a copy, not a view of the node's image
+    assert mrml.volume_from_node(node).array[0, 0, 0] != 1234
+
+
+def test_volume_node_errors_are_clear(scene):
+    cta, _ = _cta()
+    sheared = Volume(cta.array, cta.ijk_to_ras @ np.array([[1, 0.3, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]))
+    with pytest.raises(ValueError, match="sheared"):
+        mrml.volume_to_node(scene, sheared, "bad")
+    empty = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "empty")
+    with pytest.raises(ValueError, match="no image data"):
+        mrml.volume_from_node(empty)
+    node = mrml.volume_to_node(scene, cta, "CTA")
+    node.SetAndObserveTransformNodeID(scene.AddNewNodeByClass("vtkMRMLLinearTransformNode").GetID())
+    with pytest.raises(ValueError, match="harden"):
+        mrml.volume_from_node(node)
+
+
+def test_segmentation_labelmap_round_trip(scene):
+    cta, lab = _cta()
+    ref = mrml.volume_to_node(scene, cta, "CTA")
+    seg = mrml.segmentation_from_labelmap(scene, lab, {1: ("vessel", (1, 0, 0)), 2: ("blob", (0, 1, 0))}, "Vessels")
+    n_before = scene.GetNumberOfNodes()
+    back, names = mrml.labelmap_from_segmentation(seg, ref)
+    assert names == {"vessel": 1, "blob": 2}
+    assert scene.GetNumberOfNodes() == n_before  # temporary nodes removed
+    np.testing.assert_allclose(back.ijk_to_ras, cta.ijk_to_ras, atol=1e-9)
+    np.testing.assert_array_equal(back.array, lab.array)
+    assert mrml.segment_colors(seg) == {"vessel": (1.0, 0.0, 0.0), "blob": (0.0, 1.0, 0.0)}
+    with pytest.raises(ValueError, match="not in"):
+        mrml.labelmap_from_segmentation(seg, ref, ["nope"])
+
+
+def test_detector_ijk_to_ras_puts_every_pixel_on_its_detector_point():
+    cta, _ = _cta()
+    pose_c = _pose(C.VIEW_LAT_PLUS)
+    pose_ras = cta.centred_to_ras @ pose_c
+    m = mrml.detector_ijk_to_ras(DET, pose_ras)
+    _, world = source_and_detector_points(RigidTransform(torch.as_tensor(pose_c)[None]), DET)
+    want = world[0].numpy() @ cta.centred_to_ras[:3, :3].T + cta.centred_to_ras[:3, 3]  # (H, W, 3) RAS
+    jj, ii = np.meshgrid(np.arange(DET.rows), np.arange(DET.cols), indexing="ij")
+    ijk = np.stack([ii, jj, np.zeros_like(ii), np.ones_like(ii)], -1).astype(float)
+    got = ijk @ m.T
+    np.testing.assert_allclose(got[..., :3], want, atol=1e-9)
+    # k steps along the beam away from the source, the axes are orthonormal up to spacing.
+    spacing = np.linalg.norm(m[:3, :3], axis=0)
+    np.testing.assert_allclose(spacing, (DET.spacing_mm[1], DET.spacing_mm[0], mrml.plane.PLANE_THICKNESS_MM))
+    assert np.linalg.det(m[:3, :3]) > 0
+    src = pose_ras[:3, 3]
+    assert np.linalg.norm(m[:3, 2] + m[:3, 3] - src) > np.linalg.norm(m[:3, 3] - src)
+    assert np.allclose(detector_index_to_camera(DET)[2, 3], DET.sdd_mm)
+
+
+def test_dsa_sequence_frames_on_plane_with_browser_and_attributes(scene):
+    cta, _ = _cta()
+    frames = np.random.default_rng(1).integers(0, 4000, (4, DET.rows, DET.cols)).astype(np.uint16)
+    pose_ras = cta.centred_to_ras @ _pose()
+    angles = CArmAngles(-2.5, 4.0, DET.sdd_mm, 650.0)
+    seq, browser = mrml.dsa_sequence_node(scene, frames, DET, pose_ras, "DSA PA", frame_time_s=0.25, angles=angles)
+    assert seq.GetNumberOfDataNodes() == 4
+    assert [seq.GetNthIndexValue(n) for n in range(4)] == ["0", "0.25", "0.5", "0.75"]
+    np.testing.assert_array_equal(mrml.frames_from_sequence(seq), frames)
+    want = mrml.detector_ijk_to_ras(DET, pose_ras)
+    for n in range(4):
+        got = mrml.volume_from_node(seq.GetNthDataNode(n)).ijk_to_ras
+        np.testing.assert_allclose(got, want, atol=1e-9)
+    proxy = browser.GetProxyNode(seq)
+    assert proxy is not None and proxy.GetScene() is scene
+    np.testing.assert_array_equal(mrml.volume_from_node(proxy).array[0], frames[0])
+    det, ang, dt = mrml.geometry_from_attributes(seq)
+    assert det == DET and ang == angles and dt == 0.25
+    with pytest.raises(ValueError, match="does not match"):
+        mrml.dsa_sequence_node(scene, frames[:, :10], DET, pose_ras, "bad")
+
+
+def test_transform_and_camera_nodes_match_pose(scene):
+    cta, _ = _cta()
+    pose_c = _pose(C.VIEW_LAT_MINUS)
+    pose_ras = cta.centred_to_ras @ pose_c
+    t = mrml.pose_transform_node(scene, pose_ras, "GeoPose LAT pose")
+    got = mrml.transform_matrix(t)
+    np.testing.assert_allclose(got, pose_ras, atol=1e-12)
+    cam = mrml.camera_node(scene, pose_ras, DET, "GeoPose LAT camera")
+    src, world = source_and_detector_points(RigidTransform(torch.as_tensor(pose_c)[None]), DET)
+    to_ras = lambda p: p @ cta.centred_to_ras[:3, :3].T + cta.centred_to_ras[:3, 3]  # noqa: E731
+    np.testing.assert_allclose(cam.GetPosition(), to_ras(src[0].numpy()), atol=1e-9)
+    centre = to_ras(world[0].numpy().reshape(-1, 3).mean(0))
+    np.testing.assert_allclose(cam.GetFocalPoint(), centre, atol=1e-6)
+    row0_dir = to_ras(world[0, 0].numpy().mean(0)) - centre  # towards image row 0
+    up = np.asarray(cam.GetViewUp())
+    assert np.dot(up, row0_dir / np.linalg.norm(row0_dir)) > 0.999
+    fov = 2 * math.degrees(math.atan(DET.rows * DET.spacing_mm[0] / 2 / DET.sdd_mm))
+    assert cam.GetViewAngle() == pytest.approx(fov)
+
+
+def test_projected_segmentation_covers_projected_vessel_voxels(scene):
+    cta, lab = _cta()
+    pose_c = _pose(C.VIEW_PA)
+    det = Detector(64, 64, (0.4, 0.4), 1020.0)
+    cta_node = mrml.volume_to_node(scene, cta, "CTA")
+    seg = mrml.projected_segmentation_node(
+        scene, lab, {1: ("vessel", (1, 0, 0)), 2: ("blob", (0, 0, 1))}, pose_c, det, "GeoPose PA projected vessels"
+    )
+    back, names = mrml.labelmap_from_segmentation(
+        seg, mrml.plane_volume_node(scene, np.zeros(det.shape), det, cta.centred_to_ras @ pose_c, "MAP"), ["vessel"]
+    )
+    mask = back.array[0] == names["vessel"]
+    # Pixels hit by vessel voxel centres (projected with the geometry module) are covered ...
+    kji = np.argwhere(lab.array == 1)
+    ijk = np.c_[kji[:, ::-1], np.ones(len(kji))]
+    pts = torch.as_tensor((ijk @ cta.ijk_to_centred.T)[:, :3])
+    rc, _ = project_points(RigidTransform(torch.as_tensor(pose_c)[None]), det, pts)
+    rc = np.rint(rc[0].numpy()).astype(int)
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < det.rows) & (rc[:, 1] >= 0) & (rc[:, 1] < det.cols)
+    assert inside.mean() > 0.9
+    hit = np.zeros(det.shape, bool)
+    hit[rc[inside, 0], rc[inside, 1]] = True
+    assert mask[hit].mean() > 0.99
+    # ... and the projection stays close to them (no spill over the whole image).
+    # Tolerance: one projected voxel (largest voxel size x magnification at the CTA centre).
+    magnification = det.sdd_mm / C.SOURCE_TO_ISOCENTER_MM
+    r = int(math.ceil(max(cta.spacing_mm) * magnification / det.spacing_mm[0]))
+    near = torch.nn.functional.max_pool2d(torch.as_tensor(hit, dtype=torch.float32)[None], 2 * r + 1, 1, r)[0].numpy() > 0
+    assert mask.sum() > 20 and (mask & ~near).sum() == 0
+    assert mask.mean() < 0.5
+
+
+def test_result_table_and_mrb_round_trip(scene, tmp_path):
+    cta, lab = _cta()
+    cta_node = mrml.volume_to_node(scene, cta, "CTA")
+    pose_ras = cta.centred_to_ras @ _pose()
+    frames = np.arange(2 * DET.rows * DET.cols, dtype=np.float32).reshape(2, DET.rows, DET.cols)
+    seq, _ = mrml.dsa_sequence_node(scene, frames, DET, pose_ras, "DSA PA", frame_time_s=0.5)
+    t = mrml.pose_transform_node(scene, pose_ras, "GeoPose PA pose")
+    seg = mrml.segmentation_from_labelmap(scene, lab, {1: ("vessel", (1, 0, 0))}, "Vessels")
+    table = mrml.result_table_node(scene, [{"view": "PA", "ncc": 0.5, "flag": "ok"}, {"view": "LAT", "ncc": 0.25}], "GeoPose results")
+    assert table.GetNumberOfRows() == 2 and table.GetCellText(1, 2) == ""
+    assert float(table.GetCellText(1, 1)) == 0.25
+    path = mrml.save_mrb(scene, tmp_path / "case.mrb")
+    s2 = mrml.load_mrb(path)
+    cta2 = mrml.volume_from_node(s2.GetFirstNodeByName("CTA"))
+    np.testing.assert_array_equal(cta2.array, cta.array)
+    np.testing.assert_allclose(cta2.ijk_to_ras, cta.ijk_to_ras, atol=1e-5)
+    t2 = s2.GetFirstNodeByName("GeoPose PA pose")
+    np.testing.assert_allclose(mrml.transform_matrix(t2), pose_ras, atol=1e-6)
+    seq2 = s2.GetFirstNodeByName("DSA PA")
+    seq2 = seq2 if seq2.IsA("vtkMRMLSequenceNode") else next(
+        s2.GetNthNodeByClass(n, "vtkMRMLSequenceNode") for n in range(s2.GetNumberOfNodesByClass("vtkMRMLSequenceNode"))
+    )
+    np.testing.assert_array_equal(mrml.frames_from_sequence(seq2), frames)
+    np.testing.assert_allclose(
+        mrml.volume_from_node(seq2.GetNthDataNode(1)).ijk_to_ras, mrml.detector_ijk_to_ras(DET, pose_ras), atol=1e-5
+    )
+    assert mrml.geometry_from_attributes(seq2)[0] == DET
+    seg2 = s2.GetFirstNodeByName("Vessels")
+    back, _ = mrml.labelmap_from_segmentation(seg2, s2.GetFirstNodeByName("CTA"))
+    np.testing.assert_array_equal(back.array, (lab.array == 1).astype(back.array.dtype))
+    tab2 = s2.GetFirstNodeByName("GeoPose results")
+    assert tab2.GetCellText(0, 0) == "PA" and float(tab2.GetCellText(0, 1)) == 0.5
+    with pytest.raises(ValueError, match=".mrb"):
+        mrml.save_mrb(scene, tmp_path / "case.zip")
