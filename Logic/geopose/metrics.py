@@ -47,14 +47,28 @@ def _check_pair(a: Tensor, b: Tensor) -> None:
 
 
 # ------------------------------------------------------------------ similarity
+# NCC scale convention: images are compared on the scale of the networks' min-max
+# inputs, i.e. each image channel is first shifted to zero mean and divided by its
+# (max - min) range, so ``eps`` acts on a [0, 1]-range image whatever the input
+# units (DSA grey values, DRR line integrals). This also keeps the pooled
+# E[x^2] - E[x]^2 patch moments accurate in float32.
+
+
+def _unit_range(x: Tensor) -> Tensor:
+    """Zero mean and unit (max - min) range per image channel; a constant channel becomes 0."""
+    x = x - x.mean(dim=(-2, -1), keepdim=True)
+    span = x.amax(dim=(-2, -1), keepdim=True) - x.amin(dim=(-2, -1), keepdim=True)
+    return torch.where(span > 0, x / torch.where(span > 0, span, torch.ones_like(span)), torch.zeros_like(x))
+
+
 def ncc(a: Tensor, b: Tensor, eps: float = NCC_EPS) -> Tensor:
     """Global normalised cross-correlation ``(B,)`` in [-1, 1].
 
-    Each image channel is z-scored, ``(x - mean) / sqrt(var + eps)``; the NCC is the
-    mean product, averaged over channels.
+    Each image channel (unit range, see above) is z-scored, ``(x - mean) / sqrt(var + eps)``;
+    the NCC is the mean product, averaged over channels.
     """
     _check_pair(a, b)
-    a, b = a.flatten(2), b.flatten(2)
+    a, b = _unit_range(a).flatten(2), _unit_range(b).flatten(2)
     za = (a - a.mean(-1, keepdim=True)) / torch.sqrt(a.var(-1, unbiased=False, keepdim=True) + eps)
     zb = (b - b.mean(-1, keepdim=True)) / torch.sqrt(b.var(-1, unbiased=False, keepdim=True) + eps)
     return (za * zb).mean(-1).mean(-1)
@@ -63,14 +77,12 @@ def ncc(a: Tensor, b: Tensor, eps: float = NCC_EPS) -> Tensor:
 def local_ncc(a: Tensor, b: Tensor, patch_px: int = MNCC_PATCH_PX, eps: float = NCC_EPS) -> Tensor:
     """Mean NCC ``(B,)`` over all ``patch_px`` x ``patch_px`` patches (stride 1, no padding).
 
-    Each patch is z-scored like :func:`ncc`; local moments come from average pooling.
+    Each patch is z-scored like :func:`ncc`; local moments come from average pooling,
+    and each patch value is clamped to [-1, 1] against float32 rounding.
     """
     _check_pair(a, b)
     if min(a.shape[-2:]) < patch_px:
         raise ValueError(f"images of {tuple(a.shape[-2:])} px are smaller than the {patch_px} px NCC patch")
-    # Patch moments come from E[x^2] - E[x]^2, which cancels badly in float32 for
-    # large values: remove each image's mean and scale it to unit range (as the
-    # published models' min-max inputs), then clamp to the valid NCC range.
     a, b = _unit_range(a), _unit_range(b)
     pool = lambda x: F.avg_pool2d(x, patch_px, stride=1)  # noqa: E731
     mu_a, mu_b = pool(a), pool(b)
@@ -79,13 +91,6 @@ def local_ncc(a: Tensor, b: Tensor, patch_px: int = MNCC_PATCH_PX, eps: float = 
     cov = pool(a * b) - mu_a * mu_b
     patch_ncc = (cov / torch.sqrt((var_a + eps) * (var_b + eps))).clamp(-1.0, 1.0)
     return patch_ncc.mean(dim=(-2, -1)).mean(-1)
-
-
-def _unit_range(x: Tensor) -> Tensor:
-    """Zero mean and unit (max - min) range per image channel."""
-    x = x - x.mean(dim=(-2, -1), keepdim=True)
-    span = x.amax(dim=(-2, -1), keepdim=True) - x.amin(dim=(-2, -1), keepdim=True)
-    return x / span.clamp_min(1e-12)
 
 
 def mncc(a: Tensor, b: Tensor, patch_px: int = MNCC_PATCH_PX, eps: float = NCC_EPS) -> Tensor:

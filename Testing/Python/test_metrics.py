@@ -34,7 +34,15 @@ def smooth_image(batch: int = 2, size: int = 48, seed: int = 0) -> torch.Tensor:
     )
 
 
+def minmax64(x: torch.Tensor) -> torch.Tensor:
+    x = x.double()
+    low, high = x.amin(dim=(-2, -1), keepdim=True), x.amax(dim=(-2, -1), keepdim=True)
+    return (x - low) / (high - low)
+
+
 def brute_force_local_ncc(a: torch.Tensor, b: torch.Tensor, p: int, eps: float = 1e-5) -> torch.Tensor:
+    """float64 patch-by-patch mean NCC of the min-max normalised images."""
+    a, b = minmax64(a), minmax64(b)
     pa = a.unfold(2, p, 1).unfold(3, p, 1).reshape(a.shape[0], -1, p * p).double()
     pb = b.unfold(2, p, 1).unfold(3, p, 1).reshape(b.shape[0], -1, p * p).double()
     za = (pa - pa.mean(-1, keepdim=True)) / torch.sqrt(pa.var(-1, unbiased=False, keepdim=True) + eps)
@@ -53,11 +61,16 @@ def test_ncc_identity_negative_and_affine():
     assert (mncc(x, other).abs() < 0.5).all()
 
 
-def test_local_ncc_matches_explicit_patches():
+@pytest.mark.parametrize("scale, offset", [(1.0, 0.0), (300.0, 2000.0)])
+def test_local_ncc_matches_explicit_patches(scale, offset):
+    """Also for DRR-like magnitudes, where float32 E[x^2] - E[x]^2 would cancel."""
     a, b = smooth_image(size=32), smooth_image(size=32, seed=3)
     ref = brute_force_local_ncc(a, b, MNCC_PATCH_PX)
+    a, b = a * scale + offset, b * scale + offset
     assert torch.allclose(local_ncc(a, b).double(), ref, atol=1e-4)
     assert torch.allclose(mncc(a, b).double(), 0.5 * ncc(a, b).double() + 0.5 * ref, atol=1e-4)
+    # On the min-max scale: same values as for the normalised images.
+    assert torch.allclose(ncc(a, b).double(), ncc(minmax64(a), minmax64(b)), atol=1e-5)
 
 
 def test_local_ncc_is_local():
