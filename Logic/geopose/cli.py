@@ -14,6 +14,8 @@ from . import __version__
 COMMANDS: list[tuple[str, str]] = [
     ("geopose.demo", "register"),
     ("geopose.nets.checkpoint", "register"),
+    ("geopose.register.cli", "register"),
+    ("geopose.phantom.cli", "register"),
 ]
 
 

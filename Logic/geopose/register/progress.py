@@ -27,3 +27,25 @@ class Monitor:
             raise RegistrationCancelled(f"registration cancelled during {stage}")
         if self.progress is not None:
             self.progress(stage, min(max(fraction, 0.0), 1.0), message)
+
+
+class ConsoleProgress:
+    """A text progress bar per stage on a stream (``stderr`` by default)."""
+
+    def __init__(self, stream=None, width: int = 28):
+        import sys
+
+        self.stream = stream or sys.stderr
+        self.width = width
+        self.stage = None
+
+    def __call__(self, stage: str, fraction: float, message: str) -> None:
+        if stage != self.stage and self.stage is not None:
+            self.stream.write("\n")
+        self.stage = stage
+        filled = int(round(fraction * self.width))
+        bar = "#" * filled + "-" * (self.width - filled)
+        self.stream.write(f"\r{stage:<12s} [{bar}] {fraction * 100:5.1f}% {message[:50]:<50s}")
+        if stage == "done":
+            self.stream.write("\n")
+        self.stream.flush()

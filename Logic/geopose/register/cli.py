@@ -1,0 +1,89 @@
+"""``geopose register``: register a CTA to a PA + lateral DSA pair and write result.json + overlays."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from ..cta import load_cta
+from ..cta.io import file_sha256
+from ..dsa import geometry_override_args, geometry_overrides_from_args, read_dsa
+from ..nets import make_predictors
+from ..nets.model_io import find_model_files, read_model_header
+from ..resources import default_models_dir
+from .. import contract as C
+from .evaluate import load_truth, truth_metrics
+from .pipeline import RegistrationOptions, register_case, resolve_device
+from .progress import ConsoleProgress
+from .record import build_record, write_record
+from .report import write_overlays
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("register", help="register a CTA to a PA + lateral DSA pair")
+    p.add_argument("--cta", required=True, help="CTA volume (NIfTI, NRRD, MHA or a DICOM series folder)")
+    p.add_argument("--dsa-pa", required=True, help="PA DSA run (DICOM XA, NIfTI/NRRD + JSON sidecar, or DICOM folder)")
+    p.add_argument("--dsa-lat", required=True, help="lateral DSA run")
+    p.add_argument("--cranium-mask", help="CTA cranium mask on the CTA grid (default: computed from the CTA)")
+    p.add_argument("--segmentation", help="CTA vessel label map on the CTA grid (default: contrast threshold)")
+    p.add_argument("--models", help="folder with the Init and Refine model files (default: the shipped models)")
+    p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch")
+    p.add_argument("--iterations", type=int, default=C.TTO_ITERATIONS, help="test-time optimisation steps (0: none)")
+    p.add_argument("--refine-steps", type=int, default=C.GREEDY_MAX_PROPOSALS, help="greedy refinement proposals")
+    p.add_argument("--tto-px", type=int, help="TTO image size (pixels along the longer side)")
+    p.add_argument("--biplanar", action="store_true", help="add the biplanar orthogonality term to the TTO")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
+    p.add_argument("--out", required=True, help="output folder (result.json, overlay PNGs)")
+    geometry_override_args(p, prefix="pa-")
+    geometry_override_args(p, prefix="lat-")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    device = resolve_device(args.device)
+    cta = load_cta(args.cta)
+    runs = {
+        "pa": read_dsa(args.dsa_pa, **geometry_overrides_from_args(args, prefix="pa-")),
+        "lat": read_dsa(args.dsa_lat, **geometry_overrides_from_args(args, prefix="lat-")),
+    }
+    cranium = load_cta(args.cranium_mask, check_hu=False) if args.cranium_mask else None
+    seg = load_cta(args.segmentation, check_hu=False) if args.segmentation else None
+    models_dir = Path(args.models) if args.models else default_models_dir()
+    files = find_model_files(models_dir)
+    init, refine = make_predictors(files, backend=args.backend, device=device)
+    options = RegistrationOptions(args.refine_steps, args.iterations, args.tto_px, args.biplanar, str(device))
+    case = register_case(
+        cta, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=seg, options=options,
+        progress=ConsoleProgress(),
+    )
+    truth = load_truth(args.cta)
+    inputs = {"cta": {"path": str(args.cta), "sha256": cta.metadata.get("sha256")}}
+    for key in ("pa", "lat"):
+        inputs[f"dsa_{key}"] = {"path": str(getattr(args, f"dsa_{key}")), "sha256": runs[key].metadata.get("sha256")}
+    for name, path in (("cranium_mask", args.cranium_mask), ("segmentation", args.segmentation)):
+        if path:
+            inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
+    models = {
+        kind: {"path": str(path), "sha256": file_sha256([path]), "architecture": read_model_header(path)["architecture"]}
+        for kind, path in files.items()
+    }
+    models["backend"] = args.backend
+    record = build_record(
+        case, runs, inputs=inputs, models=models, truth_metrics=truth_metrics(case, runs, truth) if truth else None
+    )
+    write_record(record, out / "result.json")
+    write_overlays(case, out, truth.carotid_points_mm if truth else None)
+    _summary(record, out)
+    return 0
+
+
+def _summary(record: dict, out: Path) -> None:
+    for key, v in record["views"].items():
+        line = f"{key.upper():>3}: view {v['view_name']:<4} mNCC {v['final_mncc']:.3f}  silhouette Dice {v['silhouette_dice']:.3f}  quality {v['quality']['flag']}"
+        if "truth" in v:
+            line += f"  mPCD final {v['truth']['final']['mpcd_mm']:.2f} mm"
+        print(line)
+    print("runtimes (s): " + json.dumps({k: round(t, 3) for k, t in record["runtimes_s"].items()}))
+    print(f"wrote {out / 'result.json'} and overlay_pa.png / overlay_lat.png")

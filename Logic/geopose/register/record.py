@@ -1,0 +1,151 @@
+"""The result record (``result.json``): every matrix, trace, runtime and checksum
+of a registration. Versioned: readers check ``schema`` and ``schema_version``."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import platform
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .. import __version__
+from .. import contract as C
+from ..dsa import DSARun
+from ..geometry import carm_angles_from_pose, params_from_pose
+from ..geometry.frames import pose_to_patient
+from .pipeline import CaseRegistration, ViewOutcome
+
+SCHEMA = "geopose-result"
+SCHEMA_VERSION = 1
+
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "write_record", "library_versions"]
+
+
+def _m(t: torch.Tensor | np.ndarray) -> list:
+    a = t.detach().cpu().double().numpy() if isinstance(t, torch.Tensor) else np.asarray(t, float)
+    return a.reshape(4, 4).tolist()
+
+
+def library_versions() -> dict[str, str]:
+    import SimpleITK
+    import onnxruntime
+    import pydicom
+
+    return {
+        "geopose": __version__,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "SimpleITK": SimpleITK.Version_VersionString(),
+        "onnxruntime": onnxruntime.__version__,
+        "pydicom": pydicom.__version__,
+    }
+
+
+def _pose_entry(case: CaseRegistration, pose: torch.Tensor) -> dict:
+    centred = pose.detach().cpu().double().reshape(4, 4).numpy()
+    return {
+        "pose_centred": centred.tolist(),
+        "pose_ras": pose_to_patient(centred, case.cta.ijk_to_ras, case.cta.shape_ijk, "RAS").tolist(),
+    }
+
+
+def _view_entry(case: CaseRegistration, v: ViewOutcome, run: DSARun) -> dict:
+    r, t = params_from_pose(v.final_pose.detach().cpu().double())
+    angles = carm_angles_from_pose(v.final_pose.detach().cpu().double(), sid_mm=run.detector.sdd_mm)[0]
+    entry = {
+        "role": v.prepared.view_role,
+        "view_label": v.init.view,
+        "view_name": C.VIEW_NAMES[v.init.view],
+        "view_logits": v.init.logits.detach().cpu()[0].tolist(),
+        **_pose_entry(case, v.final_pose),
+        "euler_zyx_rad": r[0].tolist(),
+        "translation_mm": t[0].tolist(),
+        "carm": asdict(angles),
+        "carm_doc": "equivalent positioner angles (deg) and distances (mm) about the centred CTA frame's origin",
+        "acquisition": {
+            "primary_deg": run.angles.primary_deg,
+            "secondary_deg": run.angles.secondary_deg,
+            "sid_mm": run.angles.sid_mm,
+            "sod_mm": run.angles.sod_mm,
+            "detector": asdict(run.detector),
+            "frames": int(run.frames.shape[0]),
+        },
+        "stages": {name: _pose_entry(case, p) for name, p in v.stage_poses.items()},
+        "init": {"pose_canonical": _m(v.init.pose_canonical)},
+        "refinement": {
+            "start_mncc": v.refine.start_mncc,
+            "final_mncc": v.refine.mncc,
+            "accepted": v.refine.accepted,
+            "proposals": [
+                {"mncc": p.mncc, "accepted": p.accepted, "pose_centred": _m(p.pose)} for p in v.refine.proposals
+            ],
+        },
+        "final_mncc": v.final_mncc,
+        "final_mncc_doc": "mNCC of the final DRR against the TTO target (acquisition SDD)",
+        "silhouette_dice": v.silhouette_dice,
+        "quality": v.quality.as_dict(),
+    }
+    if case.tto is not None:
+        entry["tto"] = {"best_iteration": case.tto.best_iteration[v.key], "best_mncc": case.tto.best_mncc[v.key]}
+    return entry
+
+
+def build_record(
+    case: CaseRegistration,
+    runs: dict[str, DSARun],
+    *,
+    inputs: dict[str, Any] | None = None,
+    models: dict[str, Any] | None = None,
+    truth_metrics: dict[str, dict] | None = None,
+) -> dict:
+    """JSON-ready record of a :class:`CaseRegistration` (see the module doc)."""
+    cal = case.calibration
+    record: dict[str, Any] = {
+        "schema": SCHEMA,
+        "schema_version": SCHEMA_VERSION,
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "frames_doc": "pose_centred: camera-to-world 4x4 in the centred native CTA frame (RAS axes, origin at the "
+        "voxel-grid centre, mm); pose_ras: camera-to-RAS 4x4 in the CTA's patient frame; camera: source at origin, "
+        "detector at z = SDD, AP reorientation applied (CONVENTIONS 1-2)",
+        "inputs": inputs or {},
+        "models": models or {},
+        "environment": {**library_versions(), "device": case.device},
+        "options": asdict(case.options),
+        "labels_source": case.labels_source,
+        "cta": {
+            "shape_ijk": list(case.cta.shape_ijk),
+            "spacing_mm": list(case.cta.spacing_mm),
+            "ijk_to_ras": case.cta.ijk_to_ras.tolist(),
+            "centred_to_ras": case.cta.centred_to_ras.tolist(),
+        },
+        "calibration": {
+            "calibration_pose": _m(cal.calibration_pose),
+            "predicted_canonical": _m(cal.predicted_canonical),
+            "frame_transfer": _m(cal.frame_transfer),
+            "frame_transfer_doc": "canonical -> native (centred frames): T_native = frame_transfer @ T_canonical",
+        },
+        "views": {key: _view_entry(case, v, runs[key]) for key, v in case.views.items()},
+        "runtimes_s": case.runtimes_s,
+    }
+    if case.tto is not None:
+        record["tto_trace"] = [
+            {"iteration": e["iteration"], "loss": e["loss"], "views": {k: {"mncc": d["mncc"], "dice_loss": d["dice_loss"]} for k, d in e["views"].items()}}
+            for e in case.tto.trace
+        ]
+    if truth_metrics:
+        for key, metrics in truth_metrics.items():
+            record["views"][key]["truth"] = metrics
+    return record
+
+
+def write_record(record: dict, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record, indent=1))
+    return path
