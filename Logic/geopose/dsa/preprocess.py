@@ -79,7 +79,9 @@ def clip_intensities(
     pixel of ``support`` (the cranium mask; default: pixels that are not 0). The
     percentiles are taken over all pixels of those columns (so image columns entirely
     outside the head, e.g. collimated borders, do not bias them); the whole image is
-    clipped to that range and shifted so its minimum is 0.
+    clipped to that range and shifted so its minimum is 0. Anything brighter than the
+    75th percentile (vessels, skull rim) saturates: the result is the head *silhouette*
+    the paper describes, not a vessel image.
     """
     image = np.asarray(image, dtype=np.float32)
     support = image != 0 if support is None else np.asarray(support) > 0

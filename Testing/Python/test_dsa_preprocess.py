@@ -1,0 +1,192 @@
+"""DSA preprocessing (CONVENTIONS 5) on synthetic inputs with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from geopose import contract as C
+from geopose.dsa import (
+    DSAInputError,
+    DSARun,
+    bilateral,
+    clip_intensities,
+    dsa_cranium_mask,
+    minmax,
+    preprocess_dsa,
+    resample_to_detector,
+    resample_to_model_sdd,
+    temporal_map,
+)
+from geopose.geometry import CArmAngles, Detector
+
+
+def _disc(h: int, w: int, centre: tuple[float, float], radius: float) -> np.ndarray:
+    r, c = np.mgrid[:h, :w]
+    return (r - centre[0]) ** 2 + (c - centre[1]) ** 2 <= radius**2
+
+
+def test_temporal_map_is_the_maximum_over_frames():
+    rng = np.random.default_rng(0)
+    frames = rng.uniform(0, 10, size=(6, 8, 9)).astype(np.float32)
+    frames[4, 2, 3] = 50.0  # the bolus passes pixel (2, 3) at frame 4
+    m = temporal_map(frames)
+    assert m.shape == (8, 9) and m[2, 3] == 50.0
+    for r, c in [(0, 0), (7, 8), (5, 1)]:
+        assert m[r, c] == max(frames[t, r, c] for t in range(6))
+    with pytest.raises(DSAInputError):
+        temporal_map(frames[0])
+
+
+def test_cranium_mask_of_a_disc_is_the_disc():
+    rng = np.random.default_rng(1)
+    h, w = 120, 140
+    disc = _disc(h, w, (60, 70), 45)
+    image = np.where(disc, 100.0, 10.0) + rng.normal(0, 4, size=(h, w))
+    image[50:60, 60:80] = 20.0  # a dark region inside the head: a hole to fill
+    image[5:9, 5:9] = 100.0  # a bright speck outside: not the largest component
+    mask = dsa_cranium_mask(image.astype(np.float32))
+    assert mask.dtype == np.uint8
+    iou = (mask.astype(bool) & disc).sum() / (mask.astype(bool) | disc).sum()
+    assert iou > 0.97
+    assert mask[55, 70] == 1 and mask[7, 7] == 0
+    with pytest.raises(DSAInputError, match="constant"):
+        dsa_cranium_mask(np.ones((5, 5)))
+
+
+def test_clip_uses_non_empty_columns_only():
+    rng = np.random.default_rng(2)
+    image = rng.uniform(0, 100, size=(30, 40)).astype(np.float32)
+    support = np.zeros_like(image, dtype=bool)
+    support[5:25, 10:30] = True
+    lo, hi = np.percentile(image[:, 10:30], C.MAP_CLIP_PERCENTILES)
+    out = clip_intensities(image, support)
+    assert out.min() == pytest.approx(0.0)
+    assert out.max() == pytest.approx(hi - lo, rel=1e-5)
+    np.testing.assert_allclose(out, np.clip(image, lo, hi) - lo, rtol=1e-5, atol=1e-4)
+    # columns outside the support (e.g. collimator) do not move the percentiles
+    shaded = image.copy()
+    shaded[:, :10] = 1e6
+    np.testing.assert_allclose(clip_intensities(shaded, support)[:, 10:30], out[:, 10:30], rtol=1e-6)
+    with pytest.raises(DSAInputError, match="empty"):
+        clip_intensities(image, np.zeros_like(support))
+
+
+def _blob_centroid(image: np.ndarray) -> tuple[float, float]:
+    w = np.clip(image, 0, None)
+    r, c = np.mgrid[: image.shape[0], : image.shape[1]]
+    return float((w * r).sum() / w.sum()), float((w * c).sum() / w.sum())
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (6.0, -9.0)])
+def test_sdd_resampling_maps_a_point_to_the_expected_pixel(offset):
+    """A point imaged at pixel (r, c) of a 600 x 500 px, 0.4 mm detector at SDD 1200 mm
+    lies on the ray through camera (x, y, 1200); on the model detector (SDD 1020, 1.2 mm,
+    256 px, no offset) the same ray hits (x, y) * 1020 / 1200."""
+    src = Detector(600, 500, (0.4, 0.4), 1200.0, offset)
+    r0, c0 = 180.0, 330.0
+    rr, cc = np.mgrid[:600, :500]
+    image = np.exp(-((rr - r0) ** 2 + (cc - c0) ** 2) / (2 * 4.0**2)).astype(np.float32)
+    x = (249.5 - c0) * 0.4 + offset[0]
+    y = (299.5 - r0) * 0.4 + offset[1]
+    scale = C.MODEL_SDD_MM / 1200.0
+    expected = (127.5 - y * scale / C.MODEL_PIXEL_SPACING_MM, 127.5 - x * scale / C.MODEL_PIXEL_SPACING_MM)
+    out = resample_to_model_sdd(image, src)
+    assert out.shape == (C.MODEL_DETECTOR_PX, C.MODEL_DETECTOR_PX)
+    peak = np.unravel_index(np.argmax(out), out.shape)
+    win = out[peak[0] - 6 : peak[0] + 7, peak[1] - 6 : peak[1] + 7]
+    cr, cc_ = _blob_centroid(win)
+    assert (peak[0] - 6 + cr, peak[1] - 6 + cc_) == pytest.approx(expected, abs=0.1)
+
+
+def test_resampling_pads_outside_the_acquired_field():
+    src = Detector(100, 100, (0.5, 0.5), 1000.0)  # 50 mm field: far smaller than the model's
+    out = resample_to_model_sdd(np.ones((100, 100), np.float32), src)
+    # the field spans 50 * 1020 / 1000 = 51 mm = 42.5 model pixels around the centre
+    assert out[127, 127] == pytest.approx(1.0)
+    assert out[0, 0] == 0.0 and out[127, 127 + 25] == 0.0 and out[127, 127 + 19] == pytest.approx(1.0)
+
+
+def test_resampling_identity_geometry_is_identity():
+    rng = np.random.default_rng(5)
+    image = rng.uniform(size=(32, 40)).astype(np.float32)
+    det = Detector(32, 40, (0.5, 0.6), 900.0)
+    np.testing.assert_allclose(resample_to_detector(image, det, det), image, atol=1e-5)
+
+
+def test_bilateral_keeps_a_step_and_smooths_noise():
+    rng = np.random.default_rng(6)
+    h, w = 96, 96
+    clean = np.where(np.arange(w)[None, :] < w // 2, 0.0, 100.0) * np.ones((h, 1))
+    noisy = (clean + rng.normal(0, 3.0, size=(h, w))).astype(np.float32)
+    out = bilateral(noisy, C.BILATERAL_SPATIAL_SIGMA_PX, C.BILATERAL_RANGE_SIGMA)
+    flat = out[:, 5:40]
+    assert flat.std() < noisy[:, 5:40].std() / 3  # noise smoothed
+    step = out[:, w // 2 + 1].mean() - out[:, w // 2 - 2].mean()
+    assert step > 95  # edge kept
+    blurred = sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(sitk.GetImageFromArray(noisy), C.BILATERAL_SPATIAL_SIGMA_PX))
+    assert blurred[:, w // 2 + 1].mean() - blurred[:, w // 2 - 2].mean() < 30  # a plain blur would not keep it
+
+
+def test_minmax_is_the_network_normalisation():
+    out = minmax(np.array([[2.0, 4.0], [6.0, 10.0]], np.float32))
+    np.testing.assert_allclose(out, [[0.0, 0.25], [0.5, 1.0]])
+    assert np.all(minmax(np.full((3, 3), 7.0)) == 0.0)
+
+
+def _synthetic_head_run(photometric: str = "MONOCHROME2") -> tuple[DSARun, np.ndarray, np.ndarray]:
+    """A head (disc, attenuation 40) with a vessel that fills at frames 3..5 (attenuation +60),
+    stored dark-on-bright as angiography shows it (MONOCHROME2) or as-is (MONOCHROME1)."""
+    rng = np.random.default_rng(7)
+    h, w, t = 200, 240, 6
+    head = _disc(h, w, (100, 120), 80)
+    vessel = np.zeros((h, w), bool)
+    vessel[60:140, 115:121] = True
+    att = np.zeros((t, h, w), np.float32)
+    att[:] = np.where(head, 40.0, 0.0) + rng.normal(0, 1.0, size=(t, h, w))
+    att[3:, vessel] += 60.0
+    att -= att.min()
+    stored = (att.max() - att) if photometric == "MONOCHROME2" else att
+    det = Detector(h, w, (1.0, 1.0), 1100.0)
+    run = DSARun(np.round(stored), det, CArmAngles(-5.0, 0.0, 1100.0, 750.0), 100.0, {"photometric_interpretation": photometric, "bits_stored": 8})
+    return run, head, vessel
+
+
+@pytest.mark.parametrize("photometric", ["MONOCHROME2", "MONOCHROME1"])
+def test_preprocess_dsa_end_to_end(photometric):
+    run, head, vessel = _synthetic_head_run(photometric)
+    prep = preprocess_dsa(run, tto_px=120)
+    # MAP: vessels and head bright whatever the stored polarity
+    assert prep.map[vessel].mean() > prep.map[head & ~vessel].mean() + 40 > prep.map[~head].mean() + 70
+    iou = (prep.mask.astype(bool) & head).sum() / (prep.mask.astype(bool) | head).sum()
+    assert iou > 0.97
+    # model geometry: 256 px of 1.2 mm at SDD 1020; the 160 mm head spans 160*1020/1100/1.2 px
+    assert prep.model_image.shape == (256, 256) and prep.model_detector == Detector.model()
+    assert 0.0 == prep.model_image.min() and prep.model_image.max() == pytest.approx(1.0)
+    diameter_px = prep.model_mask[128].sum()
+    assert diameter_px == pytest.approx(160 * C.MODEL_SDD_MM / 1100.0 / C.MODEL_PIXEL_SPACING_MM, abs=2)
+    # masked before the bilateral filter (CONVENTIONS order): the outside stays near 0
+    assert prep.model_image[prep.model_mask == 0].max() < 0.05
+    # TTO target at the acquisition SDD, 120 px along the longer side
+    assert prep.tto_detector.sdd_mm == 1100.0 and prep.tto_detector.shape == (100, 120)
+    assert prep.tto_detector.size_mm == pytest.approx(run.detector.size_mm)
+    assert prep.tto_image.shape == (100, 120) and prep.tto_mask.shape == (100, 120)
+    # clipping to the interquartile range makes a silhouette: the head (and the vessel in it,
+    # column 118 of 240 -> 59 of 120) saturates bright, the air around it is dark
+    assert prep.tto_image[50, 58:61].mean() > 0.9 and prep.tto_image[50, 30] > 0.8
+    assert prep.tto_image[50, 5] < 0.05 and prep.tto_image[2, 60] < 0.05
+    assert prep.view_role == "PA" and prep.view_label == C.VIEW_PA
+
+
+def test_preprocess_with_given_mask():
+    run, head, _ = _synthetic_head_run()
+    half = head.copy()
+    half[:, 120:] = False
+    prep = preprocess_dsa(run, mask=half, tto_px=60)
+    np.testing.assert_array_equal(prep.mask, half.astype(np.uint8))
+    assert prep.tto_mask[:, 35:].sum() == 0
+    with pytest.raises(DSAInputError, match="mask"):
+        preprocess_dsa(run, mask=half[:, :100])
+    with pytest.raises(DSAInputError, match="empty"):
+        preprocess_dsa(run, mask=np.zeros_like(half))
