@@ -343,11 +343,14 @@ def test_geometry_override_args(sample: Path):
         geometry_overrides_from_args(args)
 
 
-def test_geometry_override_args_with_prefix():
+@pytest.mark.parametrize("prefix", ["lat", "lat-"])
+def test_geometry_override_args_with_prefix(prefix):
     parser = argparse.ArgumentParser()
-    geometry_override_args(parser, prefix="lat")
-    args = parser.parse_args(["--lat-sid-mm", "1200"])
-    assert geometry_overrides_from_args(args, prefix="lat") == {"sid_mm": 1200.0}
+    geometry_override_args(parser, prefix="pa-")
+    geometry_override_args(parser, prefix=prefix)
+    args = parser.parse_args(["--lat-sid-mm", "1200", "--pa-sid-mm", "1000"])
+    assert geometry_overrides_from_args(args, prefix=prefix) == {"sid_mm": 1200.0}
+    assert geometry_overrides_from_args(args, prefix="pa-") == {"sid_mm": 1000.0}
 
 
 def test_run_contract_errors():

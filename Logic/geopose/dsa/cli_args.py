@@ -19,10 +19,15 @@ _HELP = {
 }
 
 
+def _clean(prefix: str) -> str:
+    return prefix.strip("-_")
+
+
 def geometry_override_args(parser: argparse.ArgumentParser, *, prefix: str = "") -> None:
     """Add ``--primary-deg --secondary-deg --sid-mm --sod-mm --pixel-spacing-mm
-    --principal-offset-mm`` (optionally ``--<prefix>-...`` for a second view) to ``parser``;
-    each replaces the value read from the DSA file."""
+    --principal-offset-mm`` (with ``prefix="pa"`` or ``"pa-"``: ``--pa-sid-mm`` ... for one
+    view of several) to ``parser``; each replaces the value read from the DSA file."""
+    prefix = _clean(prefix)
     group = parser.add_argument_group(f"{prefix.upper() + ' ' if prefix else ''}DSA geometry overrides")
     for key, text in _HELP.items():
         option = cli_option(key) if not prefix else f"--{prefix}-" + cli_option(key)[2:]
@@ -36,6 +41,7 @@ def geometry_override_args(parser: argparse.ArgumentParser, *, prefix: str = "")
 
 def geometry_overrides_from_args(args: argparse.Namespace, *, prefix: str = "") -> dict[str, Any]:
     """The overrides given on the command line as keyword arguments for ``read_dsa``."""
+    prefix = _clean(prefix)
     out = {}
     for key in _HELP:
         value = getattr(args, f"{prefix + '_' if prefix else ''}{key}", None)
