@@ -1,0 +1,11 @@
+"""The phantom world: procedural head CTAs with arteries, and synthetic DSA runs.
+
+It is the demo's default data, the training population and the ground truth.
+See ``subject`` for the frames, ``labels`` for the label values and ``dsa`` for
+the acquisitions.
+"""
+
+from . import labels
+from .subject import CANONICAL_FOV_MM, Subject, make_subject
+
+__all__ = ["CANONICAL_FOV_MM", "Subject", "labels", "make_subject"]

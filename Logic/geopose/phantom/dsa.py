@@ -1,0 +1,252 @@
+"""Synthetic biplane DSA runs of a phantom subject.
+
+A run is rendered with the project DRR (``geopose.render.DRR``) at a reduced
+detector resolution (``render_px`` across) and upsampled to the written matrix.
+Frames are *attenuation-like* (contrast, bone residue bright) before they are
+stored; the stored DICOM pixels follow ``DSARun.from_attenuation`` (MONOCHROME2,
+absorbers dark). Per frame: the bolus (arterial, then a delayed distal arterial
+wave and a capillary blush), subtraction residue from small patient motion
+(the difference of two slightly shifted total-density renders), quantum noise
+whose level grows with the attenuation behind it (so a MAP shows a grainy
+cranium silhouette), detector blur, collimation and a burnt-in text annotation.
+The written matrix is capped at ``max_matrix_px`` (default 1024, 8-bit), which
+keeps a 26-frame run under 30 MB; the physical detector size is kept.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from PIL import Image, ImageDraw, ImageFont
+from torch.nn import functional as F
+
+from ..dsa import DSARun
+from ..dsa.run import LAT_ROLE, PA_ROLE
+from ..geometry.carm import CArmAngles, Detector, pose_from_carm_angles, project_points
+from ..geometry.rigid import RigidTransform
+from ..render import DRR
+from . import labels as L
+from .subject import Subject
+
+__all__ = ["Acquisition", "SyntheticDSA", "INJECTIONS", "sample_acquisition", "sample_biplane", "dsa_renderer", "simulate_dsa"]
+
+#: Detector matrices (pixels square) seen clinically (870 to 1920) and their weights.
+DETECTOR_MATRICES_PX = (880, 960, 1024, 1240, 1344, 1428, 1440, 1536, 1904, 1920)
+DETECTOR_MATRIX_WEIGHTS = (0.05, 0.06, 0.12, 0.1, 0.12, 0.2, 0.12, 0.1, 0.06, 0.07)
+SDD_RANGE_MM = (970.0, 1302.0)
+SDD_MEDIAN_MM = 1086.0
+PRIMARY_RANGE_DEG = (-115.5, 84.0)
+FRAMES_RANGE = (3, 26)
+FRAMES_MEDIAN = 14
+#: Catheter positions and the artery labels they opacify.
+INJECTIONS = {
+    "ica_left": (L.ICA_LEFT, L.ANTERIOR_LEFT),
+    "ica_right": (L.ICA_RIGHT, L.ANTERIOR_RIGHT),
+    "cca_left": (L.ICA_LEFT, L.ANTERIOR_LEFT, L.EXTERNAL_LEFT),
+    "cca_right": (L.ICA_RIGHT, L.ANTERIOR_RIGHT, L.EXTERNAL_RIGHT),
+    "arch": L.ARTERY_LABELS,
+}
+#: Peak log-attenuation of the thickest head path; sets the noise contrast inside vs outside.
+HEAD_ATTENUATION = 4.0
+STORED_MAX = 255
+#: Ray-marching step (mm) of the DSA renders: coarser than the DRR default, for speed.
+RENDER_STEP_MM = 1.5
+
+
+@dataclass(frozen=True)
+class Acquisition:
+    """One C-arm view as acquired: DICOM angles, the full detector, frames and frame time."""
+
+    view_role: str
+    angles: CArmAngles
+    detector: Detector
+    n_frames: int
+    frame_time_ms: float
+
+    def pose(self, isocentre_mm: np.ndarray) -> RigidTransform:
+        """Camera-to-world pose (centred native frame) with the isocentre at ``isocentre_mm``."""
+        m = pose_from_carm_angles(self.angles).matrix.clone()
+        m[0, :3, 3] += torch.as_tensor(np.asarray(isocentre_mm, float), dtype=m.dtype)
+        return RigidTransform(m)
+
+
+def sample_acquisition(rng: np.random.Generator, view_role: str) -> Acquisition:
+    """A clinical-like acquisition: ``view_role`` ``"PA"`` (primary near 0 deg) or ``"LAT"``
+    (primary near -90, sometimes +90); SDD 970-1302 mm (median 1086); detector
+    880-1920 px square over 270-330 mm; 3-26 frames (median 14) at 2-4 frames/s."""
+    role = str(view_role).upper()
+    if role not in (PA_ROLE, LAT_ROLE):
+        raise ValueError(f"view_role must be {PA_ROLE!r} or {LAT_ROLE!r}, got {view_role!r}")
+    if role == PA_ROLE:
+        primary = float(np.clip(rng.normal(-3.0, 8.0), -40.0, 40.0))
+        secondary = float(np.clip(rng.normal(6.0, 7.0), -25.0, 30.0))
+    else:
+        side = -1.0 if rng.random() < 0.8 else 1.0
+        primary = float(np.clip(side * 90.0 + rng.normal(0.0, 7.0), *PRIMARY_RANGE_DEG))
+        secondary = float(np.clip(rng.normal(0.0, 4.0), -15.0, 15.0))
+    sdd = float(np.clip(rng.normal(SDD_MEDIAN_MM, 60.0), *SDD_RANGE_MM))
+    sod = float(min(rng.uniform(620.0, 780.0), sdd - 280.0))
+    n_px = int(rng.choice(DETECTOR_MATRICES_PX, p=np.asarray(DETECTOR_MATRIX_WEIGHTS) / sum(DETECTOR_MATRIX_WEIGHTS)))
+    size = rng.uniform(270.0, 330.0)
+    det = Detector(n_px, n_px, (size / n_px, size / n_px), sdd)
+    frames = int(np.clip(round(rng.lognormal(math.log(FRAMES_MEDIAN), 0.35)), *FRAMES_RANGE))
+    frame_time = float(rng.choice([250.0, 1000.0 / 3.0, 500.0]))
+    return Acquisition(role, CArmAngles(primary, secondary, sdd, sod), det, frames, frame_time)
+
+
+def sample_biplane(rng: np.random.Generator, subject: Subject) -> tuple[list[Acquisition], np.ndarray]:
+    """A PA and a LAT acquisition sharing one isocentre (centred native mm, the
+    head's nominal isocentre plus a random patient offset of about 8 mm)."""
+    iso = subject.isocentre_native_mm + rng.normal(0.0, 8.0, 3)
+    return [sample_acquisition(rng, PA_ROLE), sample_acquisition(rng, LAT_ROLE)], iso
+
+
+@dataclass
+class SyntheticDSA:
+    """A simulated run with its ground truth. ``map`` is the temporal maximum of the
+    attenuation-like frames; ``carotids`` maps ``ica_left``/``ica_right`` to projected
+    centerline pixels ``(N, 2)`` (row, col) of the written matrix; ``pose`` is the true
+    camera-to-world 4x4 in the centred native frame."""
+
+    run: DSARun
+    map: np.ndarray
+    cranium_mask: np.ndarray
+    carotids: dict[str, np.ndarray]
+    pose: np.ndarray
+    injection: str
+
+
+def dsa_renderer(subject: Subject, injection: str, render_px: int = 256) -> DRR:
+    """The DRR of ``subject`` with channels total, cranium, early and late arteries
+    opacified by ``injection`` (a key of ``INJECTIONS``)."""
+    if injection not in INJECTIONS:
+        raise ValueError(f"unknown injection {injection!r}; choose one of {sorted(INJECTIONS)}")
+    opac = INJECTIONS[injection]
+    early = list(opac) + [v + L.INTRACRANIAL_OFFSET for v in opac if v in (L.ICA_LEFT, L.ICA_RIGHT)]
+    late = [v + L.INTRACRANIAL_OFFSET for v in opac if v not in (L.ICA_LEFT, L.ICA_RIGHT)]
+    groups = {"cranium": L.label_groups()["cranium"], "early": early, "late": late}
+    det = Detector.model().resized(render_px)
+    step = max(RENDER_STEP_MM, min(subject.cta.spacing_mm))
+    return DRR.from_volume(subject.cta, det, subject.labels, groups, step_mm=step)
+
+
+def _gamma_variate(t: np.ndarray, t0: float, width: float) -> np.ndarray:
+    x = np.clip((t - t0) / width, 0.0, None)
+    return (x * np.exp(1.0 - x)) ** 2
+
+
+def _blur(img: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    r = max(1, int(math.ceil(2.5 * sigma_px)))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=img.dtype) / sigma_px) ** 2)
+    k = k / k.sum()
+    x = F.conv2d(F.pad(img, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+    return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+
+
+def _moved(img: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+    """``img`` (h, w) resampled after a small in-plane rigid motion (0.2-1 deg, ~1 px)."""
+    a = math.radians(rng.uniform(0.2, 1.0)) * rng.choice([-1.0, 1.0])
+    h, w = img.shape
+    tx, ty = rng.normal(0.0, 1.0, 2) * 2.0 / np.array([w, h])
+    theta = torch.tensor([[[math.cos(a), -math.sin(a), tx], [math.sin(a), math.cos(a), ty]]], dtype=img.dtype)
+    grid = F.affine_grid(theta, (1, 1, h, w), align_corners=False)
+    return F.grid_sample(img[None, None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0, 0]
+
+
+def _burn_text(frames: np.ndarray, rng: np.random.Generator, view: str, value: float) -> None:
+    """Burn a scanner-like annotation into every frame (in place)."""
+    t, h, w = frames.shape
+    size = max(10, h // 40)
+    font = ImageFont.load_default(size=size)
+    layer = Image.new("L", (w, h), 0)
+    draw = ImageDraw.Draw(layer)
+    lines = [f"PHANTOM {int(rng.integers(1000, 9999))}", f"DSA {view}  {int(rng.integers(70, 90))} kV", f"{rng.integers(2, 5)} F/s"]
+    x0, y0 = int(0.04 * w), int(0.04 * h)
+    for n, line in enumerate(lines):
+        draw.text((x0, y0 + n * int(1.3 * size)), line, fill=255, font=font)
+    draw.text((int(0.9 * w), int(0.5 * h)), "L" if view == LAT_ROLE else "R", fill=255, font=font)
+    frames[:, np.asarray(layer) > 127] = value
+
+
+def simulate_dsa(
+    subject: Subject,
+    acquisition: Acquisition,
+    pose: RigidTransform,
+    rng: np.random.Generator,
+    *,
+    injection: str = "cca_left",
+    drr: DRR | None = None,
+    render_px: int = 256,
+    max_matrix_px: int = 1024,
+) -> SyntheticDSA:
+    """Simulate one DSA run of ``subject`` seen from ``pose`` (camera-to-world, centred
+    native frame) with the intrinsics and timing of ``acquisition``."""
+    det_full = acquisition.detector
+    det_out = det_full if max(det_full.shape) <= max_matrix_px else det_full.resized(max_matrix_px)
+    det_r = det_full.resized(render_px)
+    drr = drr or dsa_renderer(subject, injection, render_px)
+    T = int(acquisition.n_frames)
+    if T < 1:
+        raise ValueError(f"a DSA run needs at least one frame, got {T}")
+
+    p0 = pose.matrix.double()
+    with torch.no_grad():
+        tot0, cran, early, late = drr(RigidTransform(p0.float()), det_r)[0].double()  # total, cranium, early, late
+    # motion: the live frames see the head slightly moved (in-plane shift and rotation
+    # of the total-density render); the mask minus live difference is the residue
+    tot1 = _moved(tot0, rng)
+    k_att = HEAD_ATTENUATION / max(float(torch.quantile(tot0.flatten(), 0.995)), 1e-6)
+    times = np.arange(T, dtype=float)
+    t_peak = rng.uniform(0.15, 0.35) * max(T - 1, 1)
+    width = max(1.0, rng.uniform(0.12, 0.25) * T)
+    a_early = _gamma_variate(times, t_peak - width, width)
+    a_late = _gamma_variate(times, t_peak - 0.6 * width, width)
+    capillary = _gamma_variate(times, t_peak + 0.3 * width, 1.8 * width)
+    drift = np.clip(times / max(T - 1, 1) * rng.uniform(0.3, 1.0) + rng.normal(0, 0.15, T), -0.3, 1.2)
+
+    vessel_gain = rng.uniform(0.8, 1.2) * k_att * 1.6
+    blush = rng.uniform(0.02, 0.06) * k_att
+    residue_gain = rng.uniform(0.6, 1.4) * k_att
+    base = torch.stack([
+        vessel_gain * (float(a_early[t]) * early + float(a_late[t]) * late)
+        + blush * float(capillary[t]) * cran
+        + residue_gain * float(drift[t]) * (tot1 - tot0)
+        for t in range(T)
+    ])[:, None]
+    base = _blur(base.float(), rng.uniform(0.5, 1.0))
+    H, W = det_out.shape
+    signal = F.interpolate(base, size=(H, W), mode="bilinear", align_corners=False)[:, 0]
+    atten = F.interpolate(tot0[None, None].float() * k_att, size=(H, W), mode="bilinear", align_corners=False)[0, 0]
+    # quantum noise in the log domain: its sd grows like exp(attenuation / 2); mottled
+    sigma = rng.uniform(0.012, 0.025) * torch.exp(0.5 * atten.clamp(max=HEAD_ATTENUATION))
+    g = torch.Generator().manual_seed(int(rng.integers(2**31)))
+    noise = torch.randn((T, 1, (H + 1) // 2, (W + 1) // 2), generator=g)
+    noise = F.interpolate(noise, size=(H, W), mode="bilinear", align_corners=False)[:, 0] * 1.6
+    frames = signal + sigma * noise
+
+    # collimation: dark beyond the shutter edges
+    margin = rng.uniform(0.0, 0.08, 4)
+    r0, r1 = int(margin[0] * H), H - int(margin[1] * H)
+    c0, c1 = int(margin[2] * W), W - int(margin[3] * W)
+    coll = torch.zeros(H, W, dtype=torch.bool)
+    coll[r0:r1, c0:c1] = True
+
+    scale = 0.75 * STORED_MAX / max(float(torch.quantile(signal.amax(0)[::4, ::4].flatten(), 0.999)), 1e-6)
+    offset = 0.06 * STORED_MAX
+    att = torch.where(coll, frames * scale + offset, torch.zeros_like(frames)).clamp(0, STORED_MAX).round().numpy()
+    _burn_text(att, rng, acquisition.view_role, STORED_MAX)
+    run = DSARun.from_attenuation(
+        att, det_out, acquisition.angles, acquisition.frame_time_ms,
+        {"source": "geopose.phantom", "seed": subject.seed, "injection": injection},
+    )
+    cran_full = F.interpolate(cran[None, None].float(), size=(H, W), mode="bilinear", align_corners=False)[0, 0]
+    mask = (cran_full > 0.02 * float(cran.max())).numpy()
+    carotids = {}
+    for name in ("ica_left", "ica_right"):
+        pts = np.concatenate([c["points_mm"] for c in subject.centerlines if c["name"] == name])
+        px, _ = project_points(RigidTransform(p0), det_out, torch.as_tensor(pts))
+        carotids[name] = px[0].numpy()
+    return SyntheticDSA(run, att.max(0), mask, carotids, p0[0].numpy(), injection)
