@@ -40,6 +40,15 @@ def _addLibraryPath() -> None:
 
 _addLibraryPath()
 
+
+def resourceFile(relative: str) -> Path:
+    """A file under ``Resources``: beside this file in the built extension, at the repository root in the source tree."""
+    here = Path(__file__).resolve().parent
+    for root in (here / "Resources", here.parent / "Resources"):
+        if (root / relative).exists():
+            return root / relative
+    return here / "Resources" / relative
+
 #: (import name, pip requirement) of the runtime dependencies besides torch.
 REQUIREMENTS = (
     ("SimpleITK", "SimpleITK>=2.3"),
@@ -135,7 +144,7 @@ class GeoPoseWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def setup(self) -> None:
         ScriptedLoadableModuleWidget.setup(self)
-        uiWidget = slicer.util.loadUI(self.resourcePath("UI/GeoPose.ui"))
+        uiWidget = slicer.util.loadUI(str(resourceFile("UI/GeoPose.ui")))
         self.layout.addWidget(uiWidget)
         self.ui = slicer.util.childWidgetVariables(uiWidget)
         uiWidget.setMRMLScene(slicer.mrmlScene)
@@ -422,11 +431,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
     @staticmethod
     def defaultModelsFolder() -> Path:
         """Shipped models: ``Resources/Models`` beside this file (built) or at the repository root."""
-        here = Path(__file__).resolve().parent
-        for folder in (here / "Resources" / "Models", here.parent / "Resources" / "Models"):
-            if folder.is_dir():
-                return folder
-        return here / "Resources" / "Models"
+        return resourceFile("Models")
 
     def register(
         self,
