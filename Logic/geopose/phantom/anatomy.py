@@ -47,7 +47,7 @@ def sample_head(rng: np.random.Generator, seed: int) -> HeadParams:
     """Draw one subject's anatomy and appearance parameters."""
     u = rng.uniform
     hu = {
-        "grey": u(36, 44), "white": u(24, 30), "csf": u(4, 12), "soft": u(38, 52), "fat": u(-110, -80),
+        "grey": u(35, 40), "white": u(26, 31), "csf": u(4, 12), "soft": u(38, 52), "fat": u(-110, -80),
         "cortical": u(1450, 1900), "diploe": u(450, 800), "dense": u(1800, 2300), "teeth": u(2000, 2600),
         "facial_bone": u(500, 800), "vessel": u(330, 560), "venous": u(150, 260), "globe": u(8, 18),
     }
@@ -72,7 +72,7 @@ def sample_head(rng: np.random.Generator, seed: int) -> HeadParams:
         hu=hu,
         noise_sd_hu=u(3.0, 10.0),
         hu_gain=u(0.97, 1.03),
-        hu_offset=u(-12.0, 12.0),
+        hu_offset=u(-5.0, 5.0),
         cow=cow,
         tortuosity_mm=u(1.0, 4.0),
     )
@@ -287,7 +287,7 @@ def rasterise_head(p: HeadParams, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
             sl, d_deep = _local_ellipsoid(grid, p.scale, X, Y, Z, centre, axes)
             if sl is not None:
                 _mix(brain[sl], _ramp(d_deep, h), hu_p["grey"] - 2.0)
-    csf = _ramp(-depth, h)
+    csf = _ramp(depth, h)
     csf = np.maximum(csf, (depth < 14.0) * _ramp(1.25 - 0.5 * p.atrophy - g, 0.4 * h))
     csf = np.maximum(csf, _ramp(np.abs(X) - 1.0 - p.atrophy, h) * (Z > z_b + 10.0))
     del g, depth

@@ -1,0 +1,215 @@
+"""The phantom world: reproducibility, tissues, labels, frames, DSA and the CLI."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pydicom
+import pytest
+import SimpleITK as sitk
+import torch
+
+from geopose.dsa import read_dsa, write_dsa_dicom
+from geopose.geometry import project_points, view_from_primary_angle
+from geopose.phantom import labels as L
+from geopose.phantom import make_subject
+from geopose.phantom.cli import OUTPUT_FILES, register
+from geopose.phantom.dsa import (
+    DETECTOR_MATRICES_PX,
+    SDD_RANGE_MM,
+    Acquisition,
+    dsa_renderer,
+    sample_acquisition,
+    sample_biplane,
+    simulate_dsa,
+)
+
+SPACING = 2.0
+
+
+@pytest.fixture(scope="module")
+def subject():
+    return make_subject(11, spacing_mm=SPACING)
+
+
+def _native_index(subject, head_pt) -> np.ndarray:
+    x = subject.head_to_native @ np.append(head_pt, 1.0)
+    return np.rint(np.linalg.inv(subject.cta.ijk_to_centred) @ x)[:3].astype(int)
+
+
+def _hu_at(subject, head_pt) -> float:
+    i, j, k = _native_index(subject, np.asarray(head_pt, float) * subject.params.scale)
+    return float(subject.cta.array[k - 1 : k + 2, j - 1 : j + 2, i - 1 : i + 2].mean())
+
+
+def test_same_seed_same_subject_and_other_seeds_differ(subject):
+    again = make_subject(11, spacing_mm=SPACING)
+    assert np.array_equal(again.cta.array, subject.cta.array)
+    assert np.array_equal(again.labels.array, subject.labels.array)
+    assert np.allclose(again.native_to_canonical, subject.native_to_canonical)
+    other = make_subject(12, spacing_mm=SPACING)
+    assert not np.allclose(other.native_to_canonical, subject.native_to_canonical)
+    assert np.mean(other.cta.array != subject.cta.array) > 0.1
+
+
+def test_tissue_hu(subject):
+    hu = subject.cta.array
+    lab = subject.labels.array
+    ica = np.isin(lab, L.with_intracranial([L.ICA_LEFT, L.ICA_RIGHT]))
+    assert ica.sum() > 50
+    assert 300 <= np.median(hu[ica]) <= 600
+    assert np.percentile(hu[lab == L.CRANIUM], 99) > 900  # cortical tables
+    for pt in [(25, 10, 25), (-25, 10, 25), (20, -30, 30)]:  # deep white matter
+        assert 18 <= _hu_at(subject, pt) <= 45, pt
+    assert _hu_at(subject, (0, 56, -62) + np.array([30, 0, 0])) < -900  # maxillary sinus air
+    assert np.median(hu[:3, :3, :3]) < -950  # air outside the head
+    assert hu.min() >= -1024 and hu.max() <= 3071
+
+
+def test_left_ica_on_patient_left(subject):
+    """RAS: +x is the patient's right, so the left ICA has canonical x < 0."""
+    lab = subject.labels.array
+    for values, sign in ((L.with_intracranial([L.ICA_LEFT]), -1), (L.with_intracranial([L.ICA_RIGHT]), 1)):
+        k, j, i = np.nonzero(np.isin(lab, values))
+        ijk = np.stack([i, j, k, np.ones_like(i)]).astype(float)
+        can = subject.native_to_canonical @ subject.cta.ijk_to_centred @ ijk
+        assert sign * can[0].mean() > 10.0
+    for c in subject.centerlines:
+        if c["name"] in ("ica_left", "ica_right"):
+            can = c["points_mm"] @ subject.native_to_canonical[:3, :3].T + subject.native_to_canonical[:3, 3]
+            assert np.sign(can[:, 0].mean()) == (-1 if c["name"] == "ica_left" else 1)
+
+
+def test_native_to_canonical_is_rigid_and_small(subject):
+    m = subject.native_to_canonical
+    R = m[:3, :3]
+    assert np.allclose(R.T @ R, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(R), 1.0)
+    assert np.allclose(m[3], [0, 0, 0, 1])
+    angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+    assert angle <= 15.0 + 1e-9
+    assert json.loads(json.dumps(subject.truth()))["native_to_canonical"] == m.tolist()
+
+
+def test_native_resampled_matches_canonical(subject):
+    can_cta, can_lab = subject.canonical()
+    K, J, I = can_lab.array.shape
+    k, j, i = np.meshgrid(np.arange(K), np.arange(J), np.arange(I), indexing="ij")
+    ijk = np.stack([i.ravel(), j.ravel(), k.ravel(), np.ones(i.size)])
+    native_ijk = np.linalg.inv(subject.cta.ijk_to_centred) @ np.linalg.inv(subject.native_to_canonical) @ can_cta.ijk_to_centred @ ijk
+    n = np.rint(native_ijk[:3]).astype(int)
+    si, sj, sk = subject.cta.shape_ijk
+    ok = (n[0] >= 0) & (n[0] < si) & (n[1] >= 0) & (n[1] < sj) & (n[2] >= 0) & (n[2] < sk)
+    resampled = np.zeros(ijk.shape[1], np.uint8)
+    resampled[ok] = subject.labels.array[n[2, ok], n[1, ok], n[0, ok]]
+    a, b = L.cranium_mask(resampled), L.cranium_mask(can_lab.array.ravel())
+    b_in = b & ok  # the native field of view may clip the canonical cube
+    dice = 2 * (a & b_in).sum() / (a.sum() + b_in.sum())
+    assert dice > 0.95
+    va, vb = L.vessel_mask(resampled), L.vessel_mask(can_lab.array.ravel()) & ok
+    assert 2 * (va & vb).sum() / (va.sum() + vb.sum()) > 0.5
+
+
+def test_acquisition_distribution():
+    rng = np.random.default_rng(0)
+    pa = [sample_acquisition(rng, "PA") for _ in range(150)]
+    lat = [sample_acquisition(rng, "LAT") for _ in range(150)]
+    assert all(view_from_primary_angle(a.angles.primary_deg) == 1 for a in pa)
+    assert all(view_from_primary_angle(a.angles.primary_deg) != 1 for a in lat)
+    assert all(-115.5 <= a.angles.primary_deg <= 84.0 for a in pa + lat)
+    sdd = np.array([a.detector.sdd_mm for a in pa + lat])
+    assert sdd.min() >= SDD_RANGE_MM[0] and sdd.max() <= SDD_RANGE_MM[1] and 1050 < np.median(sdd) < 1120
+    frames = np.array([a.n_frames for a in pa + lat])
+    assert frames.min() >= 3 and frames.max() <= 26 and 11 <= np.median(frames) <= 17
+    assert {a.detector.rows for a in pa + lat} <= set(DETECTOR_MATRICES_PX)
+    with pytest.raises(ValueError, match="view_role"):
+        sample_acquisition(rng, "AP")
+
+
+def test_bad_grid_is_refused():
+    with pytest.raises(ValueError, match="spacing_mm"):
+        make_subject(0, spacing_mm=0.2)
+    with pytest.raises(ValueError, match="shape"):
+        make_subject(0, spacing_mm=2.0, shape=(4, 4, 4))
+
+
+@pytest.fixture(scope="module")
+def dsa_pair(subject):
+    rng = np.random.default_rng(3)
+    acqs, iso = sample_biplane(rng, subject)
+    drr = dsa_renderer(subject, "ica_left", render_px=160)
+    sims = [simulate_dsa(subject, a, a.pose(iso), rng, injection="ica_left", drr=drr, render_px=160, max_matrix_px=320) for a in acqs]
+    return acqs, iso, sims
+
+
+def test_pose_centres_isocentre(dsa_pair):
+    acqs, iso, sims = dsa_pair
+    for acq, sim in zip(acqs, sims):
+        det = sim.run.detector
+        px, depth = project_points(acq.pose(iso), det, torch.as_tensor(iso)[None])
+        assert np.allclose(px[0, 0].numpy(), [(det.rows - 1) / 2, (det.cols - 1) / 2], atol=1e-6)
+        assert np.isclose(float(depth[0, 0]), acq.angles.sod_mm)
+
+
+def test_projected_carotid_lands_on_opacified_vessel(dsa_pair):
+    _, _, sims = dsa_pair
+    for sim in sims:
+        m = sim.map
+        H, W = m.shape
+
+        def sample(px):
+            r, c = np.rint(px).astype(int).T
+            ok = (r >= 0) & (r < H) & (c >= 0) & (c < W)
+            return m[r[ok], c[ok]]
+
+        left = sample(sim.carotids["ica_left"])
+        assert left.size > 20
+        background = np.percentile(m[sim.cranium_mask], 75)
+        assert np.median(left) > background  # the injected left ICA is bright
+        assert sim.map.shape == sim.run.frames.shape[1:] and sim.cranium_mask.mean() > 0.1
+
+
+def test_map_is_textured_cranium_silhouette(dsa_pair):
+    _, _, sims = dsa_pair
+    for sim in sims:
+        inside = sim.map[sim.cranium_mask]
+        outside = sim.map[~sim.cranium_mask & (sim.map > 0)]
+        assert np.median(inside) > np.median(outside) + 5  # grainy bright head on a dark field
+        assert inside.std() > 3
+
+
+def test_dicom_carries_geometry(dsa_pair, tmp_path):
+    acqs, _, sims = dsa_pair
+    path = write_dsa_dicom(sims[1].run, tmp_path / "lat.dcm", bits=8)
+    ds = pydicom.dcmread(path)
+    a = acqs[1].angles
+    assert ds.Modality == "XA" and int(ds.NumberOfFrames) == acqs[1].n_frames
+    assert np.isclose(float(ds.PositionerPrimaryAngle), a.primary_deg, atol=0.01)
+    assert np.isclose(float(ds.PositionerSecondaryAngle), a.secondary_deg, atol=0.01)
+    assert np.isclose(float(ds.DistanceSourceToDetector), a.sid_mm, atol=0.01)
+    assert np.isclose(float(ds.DistanceSourceToPatient), a.sod_mm, atol=0.01)
+    assert np.allclose([float(v) for v in ds.ImagerPixelSpacing], sims[1].run.detector.spacing_mm, rtol=1e-4)
+    assert np.isclose(float(ds.FrameTime), acqs[1].frame_time_ms, atol=0.01)
+    back = read_dsa(path)
+    assert np.allclose(back.attenuation(), sims[1].run.attenuation(), atol=1.0)
+
+
+def test_cli_writes_the_six_files(tmp_path):
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["phantom", "--seed", "4", "--out", str(tmp_path), "--spacing-mm", "2", "--max-matrix-px", "256"])
+    assert args.func(args) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(OUTPUT_FILES)
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert np.asarray(truth["native_to_canonical"]).shape == (4, 4)
+    for view in ("pa", "lat"):
+        pose = np.asarray(truth["views"][view]["pose_camera_to_world"])
+        assert np.allclose(pose[:3, :3].T @ pose[:3, :3], np.eye(3), atol=1e-9)
+    img = sitk.ReadImage(str(tmp_path / "cta.nii.gz"))
+    ijk_to_ras = np.asarray(truth["ijk_to_ras"])
+    ras = ijk_to_ras @ np.array([3.0, 5.0, 7.0, 1.0])
+    lps = np.asarray(img.TransformContinuousIndexToPhysicalPoint((3.0, 5.0, 7.0)))
+    assert np.allclose(ras[:3] * [-1, -1, 1], lps, atol=1e-3)
+    lines = json.loads((tmp_path / "centerlines.json").read_text())["centerlines"]
+    assert {"ica_left", "ica_right", "basilar"} <= {c["name"] for c in lines}
