@@ -1,0 +1,180 @@
+"""Batched, seeded image augmentations that make training DRRs look like DSA MAPs.
+
+All functions take ``(B, 1, H, W)`` float images in [0, 1] on any device and a
+``torch.Generator`` on the same device; each sample draws its own parameters,
+so a batch is reproducible from the generator's seed. The output is min-max
+normalised to [0, 1] like every network input (CONVENTIONS 4).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+from ..nets import normalize_minmax
+from . import recipe as R
+
+
+def _uniform(n: int, lo: float, hi: float, gen: torch.Generator, device: torch.device) -> Tensor:
+    return lo + (hi - lo) * torch.rand(n, generator=gen, device=device)
+
+
+def _coin(n: int, p: float, gen: torch.Generator, device: torch.device) -> Tensor:
+    """``(n, 1, 1, 1)`` bool: which samples get an augmentation of probability ``p``."""
+    return (torch.rand(n, generator=gen, device=device) < p).view(n, 1, 1, 1)
+
+
+def box_blur(x: Tensor, size: int = 3) -> Tensor:
+    """Mean filter of odd ``size`` px with replicate padding."""
+    pad = size // 2
+    return F.avg_pool2d(F.pad(x, (pad, pad, pad, pad), mode="replicate"), size, stride=1)
+
+
+def plasma(n: int, shape: tuple[int, int], roughness: Tensor, gen: torch.Generator) -> Tensor:
+    """Fractal ``(n, 1, H, W)`` fields in [0, 1]: octaves of smooth noise, amplitude ``roughness**octave``.
+
+    Low roughness gives smooth fields, high roughness more fine detail.
+    """
+    H, W = shape
+    dev = roughness.device
+    field = torch.zeros(n, 1, H, W, device=dev)
+    octaves = max(1, int(math.log2(max(H, W))) - 1)
+    for o in range(octaves):
+        size = 2 ** (o + 1)
+        noise = torch.rand(n, 1, size + 1, size + 1, generator=gen, device=dev) - 0.5
+        field += F.interpolate(noise, size=(H, W), mode="bilinear", align_corners=True) * roughness.view(n, 1, 1, 1) ** o
+    return normalize_minmax(field)
+
+
+def bilateral(x: Tensor, spatial_sd_px: Tensor, range_sd: Tensor, radius: int = R.BILATERAL_RADIUS_PX) -> Tensor:
+    """Edge-preserving bilateral filter, per-sample sigmas (px and intensity), window ``2 radius + 1``."""
+    n = x.shape[0]
+    padded = F.pad(x, (radius,) * 4, mode="replicate")
+    H, W = x.shape[-2:]
+    s2 = (2 * spatial_sd_px**2).view(n, 1, 1, 1)
+    r2 = (2 * range_sd**2).view(n, 1, 1, 1)
+    acc = torch.zeros_like(x)
+    norm = torch.zeros_like(x)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            shifted = padded[..., radius + dy : radius + dy + H, radius + dx : radius + dx + W]
+            weight = torch.exp(-(dy * dy + dx * dx) / s2 - (shifted - x) ** 2 / r2)
+            acc += weight * shifted
+            norm += weight
+    return acc / norm
+
+
+def clahe(x: Tensor, clip: Tensor, tiles: int = R.CLAHE_TILES, bins: int = R.CLAHE_BINS) -> Tensor:
+    """Contrast-limited adaptive histogram equalisation with per-sample clip limits.
+
+    ``tiles x tiles`` tile histograms of ``bins`` bins are clipped at ``clip x mean
+    bin count`` (excess spread uniformly); pixel mappings are bilinearly blended
+    between the four nearest tile centres. Needs H and W divisible by ``tiles``.
+    """
+    n, _, H, W = x.shape
+    if H % tiles or W % tiles:
+        raise ValueError(f"CLAHE needs an image size divisible by {tiles} tiles, got {H}x{W}")
+    th, tw = H // tiles, W // tiles
+    idx = (x.clamp(0, 1) * (bins - 1)).round().long()  # (n,1,H,W)
+    tile_idx = idx.view(n, tiles, th, tiles, tw).permute(0, 1, 3, 2, 4).reshape(n, tiles * tiles, th * tw)
+    hist = torch.zeros(n, tiles * tiles, bins, device=x.device).scatter_add_(2, tile_idx, torch.ones_like(tile_idx, dtype=torch.float32))
+    limit = (clip.view(n, 1, 1) * th * tw / bins).clamp_min(1.0)
+    excess = (hist - limit).clamp_min(0).sum(-1, keepdim=True)
+    hist = hist.clamp(max=limit) + excess / bins
+    cdf = hist.cumsum(-1)
+    lut = (cdf - cdf[..., :1]) / (cdf[..., -1:] - cdf[..., :1]).clamp_min(1e-6)  # (n, T*T, bins)
+    lut = lut.view(n, tiles, tiles, bins)
+    # Tile-centre coordinates of each pixel (fractional tile index), clamped at the borders.
+    ty = ((torch.arange(H, device=x.device) + 0.5) / th - 0.5).clamp(0, tiles - 1)
+    tx = ((torch.arange(W, device=x.device) + 0.5) / tw - 0.5).clamp(0, tiles - 1)
+    y0, x0 = ty.floor().long(), tx.floor().long()
+    y1, x1 = (y0 + 1).clamp(max=tiles - 1), (x0 + 1).clamp(max=tiles - 1)
+    fy, fx = (ty - y0).view(1, H, 1), (tx - x0).view(1, 1, W)
+    v = idx[:, 0]  # (n,H,W)
+    b = torch.arange(n, device=x.device).view(n, 1, 1)
+
+    def look(yy: Tensor, xx: Tensor) -> Tensor:
+        return lut[b, yy.view(1, H, 1), xx.view(1, 1, W), v]
+
+    top = look(y0, x0) * (1 - fx) + look(y0, x1) * fx
+    bottom = look(y1, x0) * (1 - fx) + look(y1, x1) * fx
+    return (top * (1 - fy) + bottom * fy).unsqueeze(1)
+
+
+def map_like(x: Tensor, cranium: Tensor, gen: torch.Generator) -> Tensor:
+    """Phantom DRR -> DSA-MAP look: a strong skull rim and subtraction noise texture inside the cranium.
+
+    ``cranium`` is the cranium-channel line integral ``(B, 1, H, W)`` (any scale).
+    """
+    n, dev = x.shape[0], x.device
+    silhouette = torch.sigmoid(cranium) * 2.0 - 1.0  # 0 outside, -> 1 through the skull
+    rim = (silhouette - box_blur(silhouette, 7)).abs()
+    rim = rim / rim.flatten(1).amax(1).clamp_min(1e-6).view(n, 1, 1, 1)
+    gain = _uniform(n, *R.SKULL_RIM_GAIN, gen, dev).view(n, 1, 1, 1)
+    sd = _uniform(n, *R.SUBTRACTION_NOISE_SD, gen, dev).view(n, 1, 1, 1)
+    texture = box_blur(torch.randn(x.shape, generator=gen, device=dev), 3) * sd * silhouette
+    return (x + gain * rim + texture).clamp(0, 1)
+
+
+def augment(x: Tensor, gen: torch.Generator, cranium: Tensor | None = None, *, map_like_p: float = R.MAP_LIKE_P) -> Tensor:
+    """The full training augmentation of a ``(B, 1, H, W)`` batch -> min-max [0, 1], same shape.
+
+    ``cranium`` (the cranium channel) enables the MAP-likeness step. Does not alter ``x``.
+    """
+    if x.ndim != 4 or x.shape[1] != 1:
+        raise ValueError(f"augment expects a (B, 1, H, W) batch, got shape {tuple(x.shape)}")
+    n, dev = x.shape[0], x.device
+    x = normalize_minmax(x)
+    p = R.AUG_P
+    if cranium is not None:
+        x = torch.where(_coin(n, map_like_p, gen, dev), map_like(x, cranium, gen), x)
+    # Plasma brightness and contrast (p = 1).
+    bright = plasma(n, x.shape[-2:], _uniform(n, *R.PLASMA_ROUGHNESS, gen, dev), gen)
+    contrast = plasma(n, x.shape[-2:], _uniform(n, *R.PLASMA_ROUGHNESS, gen, dev), gen)
+    mean = x.mean(dim=(-2, -1), keepdim=True)
+    x = (x - mean) * (1 + R.PLASMA_CONTRAST * (contrast - 0.5)) + mean + R.PLASMA_BRIGHTNESS * (bright - 0.5)
+    x = normalize_minmax(x)
+    x = torch.where(_coin(n, p, gen, dev), clahe(x, _uniform(n, *R.CLAHE_CLIP, gen, dev)), x)
+    gamma = _uniform(n, *R.GAMMA_RANGE, gen, dev).view(n, 1, 1, 1)
+    x = torch.where(_coin(n, p, gen, dev), x.clamp_min(0) ** gamma, x)
+    filtered = bilateral(x, _uniform(n, *R.BILATERAL_SPATIAL_PX, gen, dev), _uniform(n, *R.BILATERAL_RANGE_SD, gen, dev))
+    x = torch.where(_coin(n, p, gen, dev), filtered, x)
+    x = torch.where(_coin(n, p, gen, dev), box_blur(x), x)
+    amount = _uniform(n, *R.SHARPNESS_RANGE, gen, dev).view(n, 1, 1, 1)
+    x = torch.where(_coin(n, p, gen, dev), (x + amount * (x - box_blur(x))).clamp(0, 1), x)
+    noise = torch.randn(x.shape, generator=gen, device=dev) * R.NOISE_SD
+    x = torch.where(_coin(n, p, gen, dev), (x + noise).clamp(0, 1), x)
+    x = torch.where(_coin(n, p, gen, dev), x * (1 - _erase_mask(x, gen)), x)
+    x = torch.where(_coin(n, p, gen, dev), x * _collimation_mask(x, gen), x)
+    return normalize_minmax(x)
+
+
+def _erase_mask(x: Tensor, gen: torch.Generator) -> Tensor:
+    """``(B, 1, H, W)`` 1 inside one random rectangle per sample (area fraction ``ERASE_FRACTION``)."""
+    n, _, H, W = x.shape
+    dev = x.device
+    area = _uniform(n, *R.ERASE_FRACTION, gen, dev) * H * W
+    aspect = torch.exp(_uniform(n, -1.0, 1.0, gen, dev))
+    h = (area * aspect).sqrt().clamp(1, H)
+    w = (area / aspect).sqrt().clamp(1, W)
+    top = torch.rand(n, generator=gen, device=dev) * (H - h)
+    left = torch.rand(n, generator=gen, device=dev) * (W - w)
+    rows = torch.arange(H, device=dev).view(1, H, 1)
+    cols = torch.arange(W, device=dev).view(1, 1, W)
+    inside = (rows >= top.view(n, 1, 1)) & (rows < (top + h).view(n, 1, 1)) & (cols >= left.view(n, 1, 1)) & (cols < (left + w).view(n, 1, 1))
+    return inside.unsqueeze(1).to(x.dtype)
+
+
+def _collimation_mask(x: Tensor, gen: torch.Generator) -> Tensor:
+    """``(B, 1, H, W)`` 0 on a random border of up to ``COLLIMATION_MAX_PX`` px per side, else 1."""
+    n, _, H, W = x.shape
+    dev = x.device
+    b = torch.randint(0, R.COLLIMATION_MAX_PX + 1, (n, 4), generator=gen, device=dev)
+    rows = torch.arange(H, device=dev).view(1, H, 1)
+    cols = torch.arange(W, device=dev).view(1, 1, W)
+    keep = (rows >= b[:, 0].view(n, 1, 1)) & (rows < H - b[:, 1].view(n, 1, 1))
+    keep = keep & (cols >= b[:, 2].view(n, 1, 1)) & (cols < W - b[:, 3].view(n, 1, 1))
+    return keep.unsqueeze(1).to(x.dtype)
