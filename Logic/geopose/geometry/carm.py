@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from .. import contract as C
-from .rigid import RigidTransform, params_from_pose, pose_from_params
+from .rigid import RigidTransform, as_transform, params_from_pose
 
 __all__ = [
     "AP_REORIENT",
@@ -192,8 +192,7 @@ def pose_from_carm_angles(angles: CArmAngles, dtype: torch.dtype = torch.float64
 
 def carm_angles_from_pose(pose: RigidTransform | Tensor, sid_mm: float) -> list[CArmAngles]:
     """Inverse of :func:`pose_from_carm_angles` for each pose in the batch."""
-    m = pose.matrix if isinstance(pose, RigidTransform) else torch.as_tensor(pose).reshape(-1, 4, 4)
-    r, t = params_from_pose(m.double())
+    r, t = params_from_pose(as_transform(pose).matrix.double())
     out = []
     for ri, ti in zip(r.tolist(), t.tolist()):
         out.append(
@@ -209,12 +208,12 @@ def carm_angles_from_pose(pose: RigidTransform | Tensor, sid_mm: float) -> list[
     return out
 
 
-def _camera_to_world(pose: RigidTransform) -> Tensor:
-    m = pose.matrix
+def _camera_to_world(pose: RigidTransform | Tensor) -> Tensor:
+    m = as_transform(pose).matrix
     return m @ _reorient(m.dtype, m.device)
 
 
-def source_and_detector_points(pose: RigidTransform, detector: Detector) -> tuple[Tensor, Tensor]:
+def source_and_detector_points(pose: RigidTransform | Tensor, detector: Detector) -> tuple[Tensor, Tensor]:
     """World positions (mm) of the sources ``(B, 3)`` and of every pixel ``(B, H, W, 3)``."""
     M = _camera_to_world(pose)
     pts = detector.camera_points(dtype=M.dtype, device=M.device)
@@ -222,14 +221,14 @@ def source_and_detector_points(pose: RigidTransform, detector: Detector) -> tupl
     return M[:, :3, 3], world
 
 
-def project_points(pose: RigidTransform, detector: Detector, points_mm: Tensor) -> tuple[Tensor, Tensor]:
+def project_points(pose: RigidTransform | Tensor, detector: Detector, points_mm: Tensor) -> tuple[Tensor, Tensor]:
     """World points ``(B, N, 3)`` or ``(N, 3)`` -> pixels ``(B, N, 2)`` (row, col) and depth (mm along the axis)."""
     M = _camera_to_world(pose)
     cam = RigidTransform(M).inverse().apply(points_mm.to(M.dtype))
     return detector.camera_to_pixel(cam), cam[..., 2]
 
 
-def backproject_pixels(pose: RigidTransform, detector: Detector, pixels: Tensor) -> tuple[Tensor, Tensor]:
+def backproject_pixels(pose: RigidTransform | Tensor, detector: Detector, pixels: Tensor) -> tuple[Tensor, Tensor]:
     """Pixels ``(B, N, 2)`` (row, col) -> ray origins ``(B, 1, 3)`` (the source) and unit directions ``(B, N, 3)``."""
     M = _camera_to_world(pose)
     cam = detector.pixel_to_camera(pixels.to(M.dtype))

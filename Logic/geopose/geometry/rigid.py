@@ -21,6 +21,7 @@ __all__ = [
     "pose_from_params",
     "params_from_pose",
     "rotation_angle_rad",
+    "as_transform",
 ]
 
 
@@ -191,3 +192,8 @@ class RigidTransform:
 
     def __repr__(self) -> str:
         return f"RigidTransform(batch={len(self)}, dtype={self.matrix.dtype})"
+
+
+def as_transform(pose: "RigidTransform | Tensor") -> RigidTransform:
+    """Accept a :class:`RigidTransform` or a ``(..., 4, 4)`` tensor."""
+    return pose if isinstance(pose, RigidTransform) else RigidTransform(torch.as_tensor(pose))

@@ -45,7 +45,7 @@ class InitEstimate:
 
 def render_model_view(drr: DRR, pose: Tensor) -> Tensor:
     """Min-max DRR (total channel) in the model geometry K0: ``(B, 1, 256, 256)``."""
-    return normalize_minmax(drr(pose, detector=Detector.model())[:, :1])
+    return normalize_minmax(drr(pose, detector=Detector.model(), channels=(0,)))
 
 
 @torch.no_grad()

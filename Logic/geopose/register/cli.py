@@ -41,49 +41,77 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    device = resolve_device(args.device)
-    cta = load_cta(args.cta)
-    runs = {
-        "pa": read_dsa(args.dsa_pa, **geometry_overrides_from_args(args, prefix="pa-")),
-        "lat": read_dsa(args.dsa_lat, **geometry_overrides_from_args(args, prefix="lat-")),
-    }
-    cranium = load_cta(args.cranium_mask, check_hu=False) if args.cranium_mask else None
-    seg = load_cta(args.segmentation, check_hu=False) if args.segmentation else None
-    models_dir = Path(args.models) if args.models else default_models_dir()
-    files = find_model_files(models_dir)
-    init, refine = make_predictors(files, backend=args.backend, device=device)
-    options = RegistrationOptions(args.refine_steps, args.iterations, args.tto_px, args.biplanar, str(device))
-    case = register_case(
-        cta, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=seg, options=options,
-        progress=ConsoleProgress(),
+    record = register_files(
+        args.cta, args.dsa_pa, args.dsa_lat, args.out,
+        cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models, backend=args.backend,
+        options=RegistrationOptions(args.refine_steps, args.iterations, args.tto_px, args.biplanar, args.device),
+        overrides={k: geometry_overrides_from_args(args, prefix=f"{k}-") for k in ("pa", "lat")},
     )
-    truth = load_truth(args.cta)
-    inputs = {"cta": {"path": str(args.cta), "sha256": cta.metadata.get("sha256")}}
-    for key in ("pa", "lat"):
-        inputs[f"dsa_{key}"] = {"path": str(getattr(args, f"dsa_{key}")), "sha256": runs[key].metadata.get("sha256")}
-    for name, path in (("cranium_mask", args.cranium_mask), ("segmentation", args.segmentation)):
-        if path:
-            inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
-    models = {
-        kind: {"path": str(path), "sha256": file_sha256([path]), "architecture": read_model_header(path)["architecture"]}
-        for kind, path in files.items()
-    }
-    models["backend"] = args.backend
-    record = build_record(
-        case, runs, inputs=inputs, models=models, truth_metrics=truth_metrics(case, runs, truth) if truth else None
-    )
-    write_record(record, out / "result.json")
-    write_overlays(case, out, truth.carotid_points_mm if truth else None)
-    _summary(record, out)
+    print_summary(record, Path(args.out))
     return 0
 
 
-def _summary(record: dict, out: Path) -> None:
+def register_files(
+    cta_path: str | Path,
+    dsa_pa: str | Path,
+    dsa_lat: str | Path,
+    out: str | Path,
+    *,
+    cranium_mask: str | Path | None = None,
+    segmentation: str | Path | None = None,
+    models: str | Path | None = None,
+    backend: str = "torch",
+    options: RegistrationOptions | None = None,
+    overrides: dict[str, dict] | None = None,
+    progress=None,
+) -> dict:
+    """Read the files, register, and write ``result.json`` and the overlays into ``out``; returns the record.
+
+    A ``truth.json`` next to the CTA (a ``geopose phantom`` case) adds accuracy metrics.
+    """
+    out = Path(out)
+    options = options or RegistrationOptions()
+    device = resolve_device(options.device)
+    options.device = str(device)
+    overrides = overrides or {}
+    cta = load_cta(cta_path)
+    runs = {
+        "pa": read_dsa(dsa_pa, **overrides.get("pa", {})),
+        "lat": read_dsa(dsa_lat, **overrides.get("lat", {})),
+    }
+    cranium = load_cta(cranium_mask, check_hu=False) if cranium_mask else None
+    seg = load_cta(segmentation, check_hu=False) if segmentation else None
+    files = find_model_files(Path(models) if models else default_models_dir())
+    init, refine = make_predictors(files, backend=backend, device=device)
+    case = register_case(
+        cta, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=seg, options=options,
+        progress=progress if progress is not None else ConsoleProgress(),
+    )
+    truth = load_truth(cta_path)
+    inputs = {"cta": {"path": str(cta_path), "sha256": cta.metadata.get("sha256")}}
+    for key, path in (("pa", dsa_pa), ("lat", dsa_lat)):
+        inputs[f"dsa_{key}"] = {"path": str(path), "sha256": runs[key].metadata.get("sha256")}
+    for name, path in (("cranium_mask", cranium_mask), ("segmentation", segmentation)):
+        if path:
+            inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
+    model_info: dict = {
+        kind: {"path": str(path), "sha256": file_sha256([path]), "architecture": read_model_header(path)["architecture"]}
+        for kind, path in files.items()
+    }
+    model_info["backend"] = backend
+    record = build_record(
+        case, runs, inputs=inputs, models=model_info, truth_metrics=truth_metrics(case, runs, truth) if truth else None
+    )
+    write_record(record, out / "result.json")
+    write_overlays(case, out, truth.carotid_points_mm if truth else None)
+    return record
+
+
+def print_summary(record: dict, out: Path) -> None:
     for key, v in record["views"].items():
         line = f"{key.upper():>3}: view {v['view_name']:<4} mNCC {v['final_mncc']:.3f}  silhouette Dice {v['silhouette_dice']:.3f}  quality {v['quality']['flag']}"
         if "truth" in v:
             line += f"  mPCD final {v['truth']['final']['mpcd_mm']:.2f} mm"
         print(line)
     print("runtimes (s): " + json.dumps({k: round(t, 3) for k, t in record["runtimes_s"].items()}))
-    print(f"wrote {out / 'result.json'} and overlay_pa.png / overlay_lat.png")
+    print(f"wrote {out / 'result.json'}, {out / 'overlay_pa.png'} and {out / 'overlay_lat.png'}")

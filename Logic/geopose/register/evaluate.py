@@ -41,18 +41,18 @@ def load_truth(cta_path: str | Path) -> Truth | None:
     if not truth_file.is_file() or not lines_file.is_file():
         return None
     truth = json.loads(truth_file.read_text())
-    lines = json.loads(lines_file.read_text())
-    poses = {key: np.asarray(truth["views"][key]["pose_centred_native"], float) for key in ("pa", "lat")}
-    items = lines["centerlines"] if isinstance(lines, dict) else lines
-    carotid = [np.asarray(c["points_mm"], float) for c in items if c.get("carotid", "ica" in c["name"].lower())]
+    lines = json.loads(lines_file.read_text())["centerlines"]
+    poses = {key: np.asarray(truth["views"][key]["pose_camera_to_world"], float) for key in ("pa", "lat")}
+    carotid_labels = {int(v) for name, v in truth["labels"].items() if name.startswith("ica")}
+    carotid = [np.asarray(c["points_mm"], float) for c in lines if int(c["label"]) in carotid_labels]
     if not carotid:
-        raise ValueError(f"{lines_file} holds no carotid centreline (names containing 'ica')")
+        raise ValueError(f"{lines_file} holds no internal carotid centreline")
     return Truth(poses, np.concatenate(carotid), str(truth_file))
 
 
 def _vessel_mask(drr: DRR, pose: torch.Tensor, detector: Detector, channel: int, threshold: float) -> np.ndarray:
     with torch.no_grad():
-        img = drr(pose.to(drr.density.device, torch.float32), detector=detector)[0, channel]
+        img = drr(pose.to(drr.density.device, torch.float32), detector=detector, channels=(channel,))[0, 0]
     return (img > threshold).cpu().numpy()
 
 
@@ -94,7 +94,7 @@ def evaluate_pose(
     if drr is not None and vessel_channel is not None:
         det = mask_detector or detector
         with torch.no_grad():
-            ref_img = drr(ref.to(drr.density.device, torch.float32), detector=det)[0, vessel_channel]
+            ref_img = drr(ref.to(drr.density.device, torch.float32), detector=det, channels=(vessel_channel,))[0, 0]
         threshold = VESSEL_MASK_FRACTION * float(ref_img.max())
         ref_mask = (ref_img > threshold).cpu().numpy()
         est_mask = _vessel_mask(drr, est, det, vessel_channel, threshold)

@@ -130,7 +130,7 @@ def _tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
 def silhouette_dice(drr: DRR, pose: torch.Tensor, prepared: PreparedDSA) -> float:
     """Hard Dice between the projected CTA cranium (channel > 0) and the DSA cranium mask (TTO geometry)."""
     with torch.no_grad():
-        sil = drr(pose, detector=prepared.tto_detector)[0, CRANIUM_CHANNEL] > 0
+        sil = drr(pose, detector=prepared.tto_detector, channels=(CRANIUM_CHANNEL,))[0, 0] > 0
     ref = torch.as_tensor(prepared.tto_mask > 0, device=sil.device)
     denom = int(sil.sum()) + int(ref.sum())
     return 1.0 if denom == 0 else 2.0 * int((sil & ref).sum()) / denom
@@ -230,7 +230,7 @@ def register_case(
     for key in VIEW_KEYS:
         p = prepared[key]
         with torch.no_grad():
-            final_img = drr(finals[key], detector=p.tto_detector)[:, :1]
+            final_img = drr(finals[key], detector=p.tto_detector, channels=(0,))
             score = float(mncc(_tensor(p.tto_image, device), final_img))
         dice = silhouette_dice(drr, finals[key], p)
         moved = RigidTransform(refined[key].pose.double()).inverse().matrix @ finals[key].double()

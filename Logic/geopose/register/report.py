@@ -24,7 +24,7 @@ def _panel(case: CaseRegistration, key: str, stage: str, carotid_mm: np.ndarray 
     det = view.prepared.tto_detector
     pose = view.stage_poses[stage]
     with torch.no_grad():
-        vessels = case.drr(pose.float(), detector=det)[0, VESSEL_CHANNEL].cpu().numpy()
+        vessels = case.drr(pose.float(), detector=det, channels=(VESSEL_CHANNEL,))[0, 0].cpu().numpy()
     rgb = viz.to_rgb(view.prepared.tto_image)
     if vessels.max() > 0:
         rgb = viz.overlay_mask(rgb, vessels > 0.05 * vessels.max(), VESSEL_COLOUR, alpha=0.55)

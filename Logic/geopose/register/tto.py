@@ -88,9 +88,9 @@ def test_time_optimise(
             for v, p in zip(views, params):
                 pose = pose_from_params(p[:, :3], p[:, 3:] * scale)
                 rotations[v.name] = pose[:, :3, :3]
-                img = drr(pose, detector=v.detector)
+                img = drr(pose, detector=v.detector, channels=(0, cranium_channel))
                 sim = mncc(v.target, img[:, :1])
-                dice = generalized_dice_loss(torch.sigmoid(img[:, cranium_channel : cranium_channel + 1]), (v.mask > 0).float())
+                dice = generalized_dice_loss(torch.sigmoid(img[:, 1:2]), (v.mask > 0).float())
                 loss = loss + C.TTO_NCC_WEIGHT * (-sim) + (1 - C.TTO_NCC_WEIGHT) * dice
                 score = float(sim.detach())
                 entry["views"][v.name] = {"mncc": score, "dice_loss": float(dice.detach()), "pose": pose.detach()[0].tolist()}

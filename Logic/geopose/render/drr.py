@@ -22,7 +22,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from ..geometry.carm import Detector, source_and_detector_points
-from ..geometry.rigid import RigidTransform
+from ..geometry.rigid import RigidTransform, as_transform
 from ..volume import Volume
 from .density import hu_to_density, label_channels
 
@@ -51,7 +51,7 @@ class DRR(nn.Module):
         if density.ndim != 4:
             raise ValueError(f"density must be (K, J, I) or (C, K, J, I), got {tuple(density.shape)}")
         self.density = nn.Parameter(density.float(), requires_grad=density.requires_grad)
-        self._atlas: Tensor | None = None
+        self._atlases: dict[tuple[int, ...], Tensor] = {}
         m = torch.as_tensor(np.asarray(ijk_to_world, dtype=np.float64))
         self.register_buffer("world_to_ijk", torch.linalg.inv(m), persistent=False)
         spacing = m[:3, :3].norm(dim=0)
@@ -80,10 +80,13 @@ class DRR(nn.Module):
         _, k, j, i = self.density.shape
         return (i, j, k)
 
-    def forward(self, pose: RigidTransform | Tensor, detector: Detector | None = None) -> Tensor:
+    def forward(
+        self, pose: RigidTransform | Tensor, detector: Detector | None = None, channels: Sequence[int] | None = None
+    ) -> Tensor:
+        """``(B, C', H, W)`` line integrals (density x mm) for ``channels`` (default: all)."""
         det = detector or self.detector
-        if not isinstance(pose, RigidTransform):
-            pose = RigidTransform(pose)
+        channels = tuple(range(self.density.shape[0])) if channels is None else tuple(int(c) for c in channels)
+        pose = as_transform(pose)
         dev = self.density.device
         pose = pose.to(device=dev)
         w2i = self.world_to_ijk.to(pose.matrix.dtype)
@@ -100,29 +103,33 @@ class DRR(nn.Module):
         frac = (torch.arange(n, device=dev, dtype=s.dtype) + 0.5) / n
         lam = lo[..., None] + (hi - lo)[..., None] * frac  # (B, N, n)
         pts = s[:, None, None, :] + lam[..., None] * seg[:, :, None, :]  # (B, N, n, 3) in (i, j, k)
-        samples = self._sample(pts.reshape(1, B * H * W, n, 3))  # (C, B*H*W, n)
+        samples = self._sample(pts.reshape(1, B * H * W, n, 3), channels)  # (C', B*H*W, n)
         step = (chord_mm / n).to(self.density.dtype)  # (B, N)
         img = samples.sum(dim=-1).reshape(-1, B, H * W) * step[None]
         return img.permute(1, 0, 2).reshape(B, -1, H, W)
 
-    def atlas(self) -> Tensor:
-        """``(1, 2C, (K+2)(J+1), I)``: tile m holds slices m-1 and m (zero outside), one zero row after each."""
-        if self._atlas is not None and not self.density.requires_grad:
-            return self._atlas
-        C_, K, J, I = self.density.shape
-        zero = self.density.new_zeros(C_, 1, J, I)
-        lower = torch.cat((zero, self.density, zero), dim=1)  # slice m-1 for tile m = 0..K+1
-        upper = torch.cat((self.density, zero, zero), dim=1)  # slice m
-        tiles = torch.cat((lower, upper), dim=0)  # (2C, K+2, J, I)
+    def atlas(self, channels: tuple[int, ...]) -> Tensor:
+        """``(1, 2C', (K+2)(J+1), I)``: tile m holds slices m-1 and m (zero outside), one zero row after each.
+
+        Cached per channel subset unless the density is being optimised."""
+        if channels in self._atlases and not self.density.requires_grad:
+            return self._atlases[channels]
+        dens = self.density[list(channels)]
+        C_, K, J, I = dens.shape
+        zero = dens.new_zeros(C_, 1, J, I)
+        lower = torch.cat((zero, dens, zero), dim=1)  # slice m-1 for tile m = 0..K+1
+        upper = torch.cat((dens, zero, zero), dim=1)  # slice m
+        tiles = torch.cat((lower, upper), dim=0)  # (2C', K+2, J, I)
         tiles = F.pad(tiles, (0, 0, 0, 1))  # zero row after each tile
         atlas = tiles.reshape(1, 2 * C_, (K + 2) * (J + 1), I)
         if not self.density.requires_grad:
-            self._atlas = atlas
+            self._atlases[channels] = atlas
         return atlas
 
-    def _sample(self, pts: Tensor) -> Tensor:
-        """Trilinear samples ``(C, ...)`` at continuous indices ``pts (1, N, n, 3)`` = (i, j, k), zero outside."""
-        C_, K, J, I = self.density.shape
+    def _sample(self, pts: Tensor, channels: tuple[int, ...]) -> Tensor:
+        """Trilinear samples ``(C', ...)`` at continuous indices ``pts (1, N, n, 3)`` = (i, j, k), zero outside."""
+        _, K, J, I = self.density.shape
+        C_ = len(channels)
         k = pts[..., 2].clamp(-1.0, float(K))
         k0 = torch.floor(k.detach())
         fk = (k - k0).to(self.density.dtype)
@@ -130,7 +137,7 @@ class DRR(nn.Module):
         y = (k0 + 1.0) * (J + 1) + pts[..., 1].clamp(-1.0, float(J))
         grid = torch.stack((2.0 * pts[..., 0] / (I - 1) - 1.0, 2.0 * y / (rows - 1) - 1.0), dim=-1)
         pair = F.grid_sample(
-            self.atlas(), grid.to(self.density.dtype), mode="bilinear", padding_mode="zeros", align_corners=True
+            self.atlas(channels), grid.to(self.density.dtype), mode="bilinear", padding_mode="zeros", align_corners=True
         )[0]  # (2C, N, n)
         lower, upper = pair[:C_], pair[C_:]
         return lower + fk * (upper - lower)
