@@ -14,8 +14,10 @@ from . import __version__
 COMMANDS: list[tuple[str, str]] = [
     ("geopose.demo", "register"),
     ("geopose.nets.checkpoint", "register"),
+    ("geopose.training.cli", "register"),
     ("geopose.register.cli", "register"),
     ("geopose.phantom.cli", "register"),
+    ("geopose.phantom.gallery", "register"),
 ]
 
 

@@ -248,7 +248,7 @@ def rasterise_head(p: HeadParams, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     if sl is not None:
         x, y, z = X[sl], Y[sl], Z[sl]
         d_air = np.minimum.reduce([
-            np.maximum.reduce([np.abs(x) - 11.0 + 0.12 * (z + 50.0), np.abs(y - 58.0) - 27.0, np.abs(z + 55.0) - 25.0]),
+            ellipsoid_distance(x * (1.0 + 0.012 * (z + 55.0)), y, z, (0, 58, -55), (11, 28, 25)),
             ellipsoid_distance(x, y, z, (30, 56, -62), (13, 17, 16)),
             ellipsoid_distance(x, y, z, (-30, 56, -62), (13, 17, 16)),
             ellipsoid_distance(x, y, z, (0, 18, -46), (11, 9, 8)),

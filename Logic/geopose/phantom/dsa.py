@@ -207,7 +207,7 @@ def simulate_dsa(
     capillary = _gamma_variate(times, t_peak + 0.3 * width, 1.8 * width)
     drift = np.clip(times / max(T - 1, 1) * rng.uniform(0.3, 1.0) + rng.normal(0, 0.15, T), -0.3, 1.2)
 
-    vessel_gain = rng.uniform(0.8, 1.2) * k_att * 1.6
+    vessel_gain = rng.uniform(0.8, 1.2) * k_att * 3.0
     blush = rng.uniform(0.02, 0.06) * k_att
     residue_gain = rng.uniform(0.6, 1.4) * k_att
     base = torch.stack([
@@ -221,7 +221,7 @@ def simulate_dsa(
     signal = F.interpolate(base, size=(H, W), mode="bilinear", align_corners=False)[:, 0]
     atten = F.interpolate(tot0[None, None].float() * k_att, size=(H, W), mode="bilinear", align_corners=False)[0, 0]
     # quantum noise in the log domain: its sd grows like exp(attenuation / 2); mottled
-    sigma = rng.uniform(0.012, 0.025) * torch.exp(0.5 * atten.clamp(max=HEAD_ATTENUATION))
+    sigma = rng.uniform(0.010, 0.02) * torch.exp(0.5 * atten.clamp(max=HEAD_ATTENUATION))
     g = torch.Generator().manual_seed(int(rng.integers(2**31)))
     noise = torch.randn((T, 1, (H + 1) // 2, (W + 1) // 2), generator=g)
     noise = F.interpolate(noise, size=(H, W), mode="bilinear", align_corners=False)[:, 0] * 1.6
