@@ -219,16 +219,16 @@ def main(argv: list[str] | None = None) -> None:
     print(table)
     if args.doc is not None:
         key = torch.device(args.device).type
-        update_doc(args.doc, key, table)
+        update_doc(args.doc, f"bench:{key}", table)
         js = args.doc.with_name(f"{args.doc.stem}_{key}.json")
         js.write_text(json.dumps(result, indent=2) + "\n")
         print(f"updated {args.doc} and wrote {js}")
 
 
 def update_doc(path: Path, key: str, table: str) -> None:
-    """Replace the text between ``<!-- bench:key -->`` and ``<!-- /bench:key -->`` in ``path``
+    """Replace the text between ``<!-- key -->`` and ``<!-- /key -->`` in ``path``
     by ``table``, or append a new marked section."""
-    start, end = f"<!-- bench:{key} -->", f"<!-- /bench:{key} -->"
+    start, end = f"<!-- {key} -->", f"<!-- /{key} -->"
     text = path.read_text() if path.exists() else ""
     block = f"{start}\n{table}{end}"
     if start in text and end in text:

@@ -122,8 +122,9 @@ def _paint_tube(hu, x, y, z, pts: torch.Tensor, radius: float, value: float) -> 
     hu[tuple(a[near] for a in idx)] = value
 
 
-def smooth_blobs(n: int = 32, spacing_mm: float = 4.0, seed: int = 0) -> Volume:
-    """A smooth density-like volume (Gaussian blobs, zero at the border) for gradient checks."""
+def smooth_blobs(n: int = 32, spacing_mm: float = 4.0, seed: int = 0, taper: bool = True) -> Volume:
+    """A smooth density-like volume for gradient checks: Gaussian blobs, multiplied (if
+    ``taper``) by a smooth window that vanishes at the grid border."""
     g = torch.Generator().manual_seed(seed)
     affine = lps_like_affine((n, n, n), spacing_mm, origin_mm=(3.0, -2.0, 5.0))
     x, y, z = _grid_mm((n, n, n), affine)
@@ -133,6 +134,9 @@ def smooth_blobs(n: int = 32, spacing_mm: float = 4.0, seed: int = 0) -> Volume:
         c = (torch.rand(3, generator=g) - 0.5) * half
         s = (0.12 + 0.1 * torch.rand(1, generator=g)) * half
         vol += torch.exp(-((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2) / (2 * s**2))
+    if taper:
+        for a in (x, y, z):
+            vol *= (1 - (a / half) ** 2).clamp_min(0) ** 2
     return Volume(vol.numpy(), affine, {"name": "smooth_blobs"})
 
 
