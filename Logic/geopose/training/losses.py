@@ -20,6 +20,8 @@ from .data import Batch, Renderer
 from .population import CHANNELS
 
 _EPS = 1e-9
+#: Regulariser of the rotation-vector norm (keeps gradients finite at zero rotation).
+_ROT_EPS = 1e-12
 #: Line-integral scale (density x mm) of the soft vessel mask ``1 - exp(-v / scale)``.
 VESSEL_SOFT_SCALE = 1.0
 TOTAL, CRANIUM, VESSELS = (CHANNELS.index(c) for c in ("total", "cranium", "vessels"))
@@ -44,7 +46,7 @@ class LossWeights:
 def _rotation_log(Rm: Tensor) -> tuple[Tensor, Tensor]:
     """Axis-angle vector ``(B, 3)`` and angle ``(B,)`` (rad) of rotations, with finite gradients at 0."""
     v = torch.stack((Rm[:, 2, 1] - Rm[:, 1, 2], Rm[:, 0, 2] - Rm[:, 2, 0], Rm[:, 1, 0] - Rm[:, 0, 1]), dim=1)
-    norm = torch.sqrt((v * v).sum(1) + _EPS)
+    norm = torch.sqrt((v * v).sum(1) + _ROT_EPS)
     cos = (Rm.diagonal(dim1=1, dim2=2).sum(1) - 1) / 2
     angle = torch.atan2(norm / 2, cos)
     return v * (angle / norm)[:, None], angle

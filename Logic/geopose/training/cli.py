@@ -1,0 +1,166 @@
+"""``geopose train``: build a canonical population, train Init/Refine, evaluate, ship models.
+
+Sub-commands: ``population`` (canonicalise phantoms or a CTA folder -> cache ``.pt``),
+``init`` and ``refine`` (train from a cache), ``evaluate`` (held-out metrics JSON),
+``ship`` (fp16 model files + manifest into a models folder).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+from . import recipe as R
+from .losses import LossWeights
+from .manifest import model_entry, write_manifest
+from .population import folder_population, load_population, phantom_population, save_population
+from .trainer import TrainConfig, train
+
+
+def _seeds(text: str) -> list[int]:
+    """``"100-107"`` or ``"1,2,5"`` -> seeds."""
+    try:
+        if "-" in text:
+            lo, hi = (int(v) for v in text.split("-"))
+            return list(range(lo, hi + 1))
+        return [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"seeds must look like 100-107 or 1,2,5, got {text!r}") from None
+
+
+def _say(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def _population(args: argparse.Namespace) -> int:
+    if (args.phantoms is None) == (args.folder is None):
+        raise ValueError("give exactly one of --phantoms SEEDS or --folder DIR")
+    if args.phantoms is not None:
+        subjects, report = phantom_population(args.phantoms, args.spacing, args.template_seed, progress=_say)
+        recipe = {"source": "phantom", "seeds": args.phantoms, "spacing_mm": args.spacing, "template_seed": args.template_seed, "canonicalisation_error": report}
+    else:
+        subjects = folder_population(args.folder, args.template, progress=_say)
+        recipe = {"source": "folder", "folder": str(args.folder), "template": str(args.template) if args.template else None}
+    save_population(args.out, subjects, recipe)
+    if args.phantoms is not None:
+        rot = [r["rotation_deg"] for r in report]
+        _say(f"canonicalisation error vs truth: rotation max {max(rot):.2f} deg, mean {sum(rot) / len(rot):.2f} deg")
+    _say(f"wrote {len(subjects)} subjects to {args.out}")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    subjects, recipe = load_population(args.population)
+    config = TrainConfig(
+        kind=args.kind,
+        steps=args.steps,
+        batch_size=args.batch_size,
+        accumulation=args.accumulation,
+        lr=args.lr,
+        depth=args.depth,
+        base_width=args.width,
+        render_px=args.render_px,
+        bank_size=args.bank_size,
+        seed=args.seed,
+        amp=not args.no_amp,
+        weights=LossWeights(render=args.render_loss, param=args.param_weight),
+        init_model=str(args.init_model) if getattr(args, "init_model", None) else None,
+        checkpoint_every=args.checkpoint_every,
+    )
+    max_seconds = args.max_minutes * 60 if args.max_minutes else None
+    path = train(config, subjects, args.out, device=args.device, data_recipe=recipe, max_seconds=max_seconds)
+    _say(f"wrote {path}")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from ..nets import load_model
+    from .evaluate import evaluate
+
+    subjects, _ = load_population(args.population, args.device or "cpu")
+    init = load_model(args.init, args.device or "cpu")
+    refine = load_model(args.refine, args.device or "cpu") if args.refine else None
+    metrics = evaluate(init, subjects, samples=args.samples, seed=args.seed, render_px=args.render_px, refine=refine)
+    text = json.dumps(metrics, indent=2)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+    print(text)
+    return 0
+
+
+def _ship(args: argparse.Namespace) -> int:
+    from ..nets import load_model, read_model_header, save_model
+
+    models_dir = Path(args.models_dir)
+    metrics = json.loads(Path(args.metrics).read_text()) if args.metrics else {}
+    entries = {}
+    for kind, source in (("init", args.init), ("refine", args.refine)):
+        header = read_model_header(source)
+        module = load_model(source)
+        if module.config.kind != kind:
+            raise ValueError(f"{source} holds a {module.config.kind} network, expected {kind}")
+        target = save_model(module, models_dir / f"geopose_{kind}.pt", header["metadata"], dtype="float16")
+        entries[kind] = model_entry(target, training=header["metadata"].get("training", {}))
+    notes = {"validation": metrics, "note": args.note} if args.note else {"validation": metrics}
+    write_manifest(models_dir, entries, notes)
+    total = sum(e["bytes"] for e in entries.values())
+    _say(f"shipped {len(entries)} models ({total / 1e6:.1f} MB) with manifest to {models_dir}")
+    return 0
+
+
+def _training_options(p: argparse.ArgumentParser, kind: str) -> None:
+    p.add_argument("--population", required=True, type=Path, help="population cache from `geopose train population`")
+    p.add_argument("--out", required=True, type=Path, help="run folder (checkpoint, log.csv, model); reruns resume")
+    p.add_argument("--steps", type=int, default=1000, help="optimiser steps")
+    p.add_argument("--max-minutes", type=float, default=None, help="stop (with a checkpoint) after this wall time")
+    p.add_argument("--batch-size", type=int, default=R.BATCH_SIZE)
+    p.add_argument("--accumulation", type=int, default=0, help=f"micro-batches per step (0: recipe, {R.INIT_ACCUMULATION} Init / {R.REFINE_ACCUMULATION} Refine)")
+    p.add_argument("--lr", type=float, default=R.LEARNING_RATE)
+    p.add_argument("--depth", type=int, default=18, choices=(18, 34))
+    p.add_argument("--width", type=int, default=64, help="ResNet stem width (64 = standard)")
+    p.add_argument("--render-px", type=int, default=256, help="rendered detector pixels (resized to 256)")
+    p.add_argument("--bank-size", type=int, default=0, help="pre-render this many samples (CPU); 0 renders every batch")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: CUDA if available)")
+    p.add_argument("--no-amp", action="store_true", help="disable bfloat16 mixed precision on CUDA")
+    p.add_argument("--render-loss", action="store_true", help="Init: add -mNCC and vessel Dice at the predicted pose")
+    p.add_argument("--param-weight", type=float, default=1.0, help="weight of the supervised raw-output term")
+    p.add_argument("--checkpoint-every", type=int, default=100)
+    if kind == "refine":
+        p.add_argument("--init-model", required=True, type=Path, help="trained Init model (encoder init, calibration)")
+    p.set_defaults(func=_train, kind=kind)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("train", help="build a training population, train, evaluate and ship GeoPose networks")
+    sub = parser.add_subparsers(dest="train_command", required=True)
+    p = sub.add_parser("population", help="canonicalise phantoms or a CTA folder into a population cache (.pt)")
+    p.add_argument("--phantoms", type=_seeds, default=None, help="phantom seeds, e.g. 100-131")
+    p.add_argument("--folder", type=Path, default=None, help="folder of CTAs NAME.nii.gz with NAME_vessels.nii.gz")
+    p.add_argument("--template", type=Path, default=None, help="template CTA (folder mode; default first case)")
+    p.add_argument("--template-seed", type=int, default=0, help="phantom whose canonical CTA is the template")
+    p.add_argument("--spacing", type=float, default=2.0, help="phantom voxel size (mm)")
+    p.add_argument("--out", required=True, type=Path)
+    p.set_defaults(func=_population)
+    _training_options(sub.add_parser("init", help="train GeoPose-Init"), "init")
+    _training_options(sub.add_parser("refine", help="train GeoPose-Refine from a trained Init"), "refine")
+    p = sub.add_parser("evaluate", help="held-out metrics of trained models (JSON)")
+    p.add_argument("--population", required=True, type=Path, help="held-out population cache")
+    p.add_argument("--init", required=True, type=Path)
+    p.add_argument("--refine", type=Path, default=None)
+    p.add_argument("--samples", type=int, default=96)
+    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--render-px", type=int, default=256)
+    p.add_argument("--device", default=None)
+    p.add_argument("--out", type=Path, default=None)
+    p.set_defaults(func=_evaluate)
+    p = sub.add_parser("ship", help="write fp16 model files and manifest.json into a models folder")
+    p.add_argument("--init", required=True, type=Path)
+    p.add_argument("--refine", required=True, type=Path)
+    p.add_argument("--metrics", type=Path, default=None, help="JSON from `geopose train evaluate`")
+    p.add_argument("--models-dir", type=Path, default=Path("Resources/Models"))
+    p.add_argument("--note", default=None, help="free text recorded in the manifest")
+    p.set_defaults(func=_ship)

@@ -1,0 +1,258 @@
+"""Training pipeline: canonicalisation, pose sampling, augmentation, losses, trainer, DDP, manifest."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from geopose.contract import VIEW_LAT_MINUS, VIEW_LAT_PLUS, VIEW_PA
+from geopose.geometry.rigid import axis_angle_to_matrix
+from geopose.metrics import double_geodesic_mm
+from geopose.nets import decode_init_pose, load_model, read_model_header, residual_from_raw
+from geopose.phantom import labels as L
+from geopose.phantom import make_subject
+from geopose.training import recipe as R
+from geopose.training.augment import augment, clahe
+from geopose.training.canonical import align_to_template, nearest_rotation, resample_to_template, rigid_error
+from geopose.training.losses import double_geodesic, log_se3_geodesic
+from geopose.training.manifest import model_entry, verify_manifest, write_manifest
+from geopose.training.population import FIDUCIALS, load_population, save_population, subject_from_volumes
+from geopose.training.poses import sample_init_poses, sample_refine_perturbations, sample_views
+from geopose.training.trainer import CHECKPOINT_NAME, LOG_NAME, TrainConfig, train
+from geopose.volume import Volume
+
+REPO = Path(__file__).resolve().parents[2]
+MODELS = REPO / "Resources" / "Models"
+
+
+# ------------------------------------------------------------ canonicalisation
+def _head_mask(native_to_canonical: np.ndarray, n: int = 56, spacing: float = 4.0) -> Volume:
+    """An asymmetric head-like mask (skull ellipsoid, jaw, notch) seen through a known transform."""
+    ijk = np.diag([spacing, spacing, spacing, 1.0])
+    ijk[:3, 3] = -(n - 1) / 2 * spacing + np.array([5.0, -7.0, 12.0])
+    vol = Volume(np.zeros((n, n, n), np.uint8), ijk)
+    k, j, i = np.meshgrid(*(np.arange(n),) * 3, indexing="ij")
+    pts = np.stack([i, j, k, np.ones_like(i)], -1).reshape(-1, 4).astype(float) @ vol.ijk_to_centred.T
+    q = pts @ native_to_canonical.T
+    skull = (q[:, 0] / 70) ** 2 + (q[:, 1] / 90) ** 2 + (q[:, 2] / 60) ** 2 < 1
+    jaw = (q[:, 0] / 25) ** 2 + ((q[:, 1] - 40) / 30) ** 2 + ((q[:, 2] + 60) / 45) ** 2 < 1
+    notch = ((q[:, 0] - 30) / 15) ** 2 + ((q[:, 1] + 50) / 15) ** 2 + ((q[:, 2] - 30) / 15) ** 2 < 1
+    return vol.like(((skull | jaw) & ~notch).reshape(n, n, n).astype(np.uint8))
+
+
+def test_nearest_rotation_projects_a_scaled_sheared_rotation():
+    Rm = axis_angle_to_matrix(torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)).numpy()
+    A = Rm @ np.array([[1.1, 0.05, 0.0], [0.0, 0.95, 0.02], [0.0, 0.0, 1.03]])
+    P = nearest_rotation(A)
+    assert np.allclose(P @ P.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(P), 1.0)
+    assert np.degrees(np.arccos((np.trace(P.T @ Rm) - 1) / 2)) < 3.0
+
+
+def test_alignment_recovers_a_known_rigid_transform():
+    truth = np.eye(4)
+    truth[:3, :3] = axis_angle_to_matrix(torch.tensor([0.15, -0.1, 0.2], dtype=torch.float64)).numpy()
+    truth[:3, 3] = [6.0, -4.0, 9.0]
+    template, moving = _head_mask(np.eye(4)), _head_mask(truth)
+    alignment = align_to_template(moving, template)
+    error = rigid_error(alignment.moving_to_template, truth)
+    assert error["rotation_deg"] < 2.0 and error["translation_mm"] < 3.0  # true rotation is 15.4 deg
+    out = resample_to_template(moving, template, alignment.moving_to_template, labels=True)
+    assert out.array.dtype == np.uint8 and out.array.shape == template.array.shape
+    dice = 2 * (out.array & template.array).sum() / (out.array.sum() + template.array.sum())
+    assert dice > 0.95
+    assert np.array_equal(moving.array, _head_mask(truth).array)  # input not altered
+
+
+def test_phantom_canonicalisation_against_known_native_to_canonical():
+    _, template_labels = make_subject(0, spacing_mm=4.0).canonical(4.0)
+    template = template_labels.like(L.cranium_mask(template_labels.array).astype(np.uint8))
+    subject = make_subject(5, spacing_mm=4.0)
+    mask = subject.labels.like(L.cranium_mask(subject.labels.array).astype(np.uint8))
+    error = rigid_error(align_to_template(mask, template).moving_to_template, subject.native_to_canonical)
+    assert error["rotation_deg"] < 4.0 and error["translation_mm"] < 6.0
+
+
+def test_alignment_rejects_an_empty_mask():
+    empty = _head_mask(np.eye(4)).like(np.zeros((56, 56, 56), np.uint8))
+    with pytest.raises(ValueError, match="empty"):
+        align_to_template(_head_mask(np.eye(4)), empty)
+
+
+# -------------------------------------------------------------- pose sampling
+def test_init_pose_sampling_follows_the_recipe_and_decodes_back():
+    gen = torch.Generator().manual_seed(0)
+    views = sample_views(6000, gen)
+    frac = [(views == v).float().mean().item() for v in (VIEW_LAT_MINUS, VIEW_PA, VIEW_LAT_PLUS)]
+    assert abs(frac[1] - R.PA_PROBABILITY) < 0.03 and abs(frac[0] - frac[2]) < 0.04
+    pose, raw = sample_init_poses(views, gen)
+    assert torch.allclose(decode_init_pose(raw, views), pose, atol=1e-4)
+    sd = raw.std(0)
+    assert torch.allclose(sd[:3], torch.tensor(R.INIT_ROTATION_SD_RAD), rtol=0.06)
+    assert torch.allclose(sd[3:] * 100, torch.tensor(R.INIT_TRANSLATION_SD_MM), rtol=0.06)
+
+
+def test_refine_perturbation_raw_targets_rebuild_the_residual():
+    gen = torch.Generator().manual_seed(1)
+    views = sample_views(4000, gen)
+    D, raw = sample_refine_perturbations(views, gen)
+    assert torch.allclose(residual_from_raw(raw), D, atol=1e-4)
+    pa = views == VIEW_PA
+    scale = torch.tensor(R.REFINE_PA_ROTATION_SD_RAD) / torch.tensor((0.13, 0.10, 0.14))
+    assert torch.allclose(raw[pa, :3].std(0), scale, rtol=0.08)
+
+
+# --------------------------------------------------------------- augmentation
+def test_augmentation_shapes_ranges_and_reproducibility():
+    x = torch.rand(6, 1, 64, 64) * 40.0
+    cranium = torch.rand(6, 1, 64, 64) * 5.0
+    before = x.clone()
+    a = augment(x, torch.Generator().manual_seed(3), cranium)
+    b = augment(x, torch.Generator().manual_seed(3), cranium)
+    c = augment(x, torch.Generator().manual_seed(4), cranium)
+    assert a.shape == x.shape and a.dtype == torch.float32
+    assert torch.isfinite(a).all() and a.amin() >= 0 and a.amax() <= 1
+    assert torch.allclose(a.flatten(1).amax(1), torch.ones(6))  # min-max per image
+    assert torch.equal(a, b) and not torch.allclose(a, c)
+    assert torch.equal(x, before)
+    with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
+        augment(torch.rand(2, 3, 64, 64), torch.Generator())
+
+
+def test_clahe_equalises_a_low_contrast_image():
+    x = 0.4 + 0.1 * torch.rand(1, 1, 64, 64)
+    y = clahe(x, torch.tensor([10.0]))
+    assert y.shape == x.shape and y.amin() >= 0 and y.amax() <= 1
+    assert y.std() > 3 * x.std()
+
+
+# --------------------------------------------------------------------- losses
+def test_geodesics_are_zero_at_the_truth_and_match_the_metric():
+    gen = torch.Generator().manual_seed(2)
+    views = sample_views(8, gen)
+    pose, _ = sample_init_poses(views, gen)
+    other, _ = sample_init_poses(views, gen)
+    pred = pose.clone().requires_grad_(True)
+    g = log_se3_geodesic(pred, pose) + double_geodesic(pred, pose)
+    assert g.max() < 1e-3
+    g.sum().backward()
+    assert torch.isfinite(pred.grad).all()
+    assert torch.allclose(double_geodesic(other.double(), pose.double()), double_geodesic_mm(other, pose), rtol=1e-4)
+    assert (log_se3_geodesic(other, pose) > 0.05).all()
+
+
+# ---------------------------------------------------------- population/trainer
+@pytest.fixture(scope="module")
+def tiny_population():
+    subjects = []
+    for seed in (1, 2):
+        cta, labels = make_subject(seed, spacing_mm=5.0).canonical(5.0)
+        subjects.append(subject_from_volumes(f"phantom-{seed}", cta, L.cranium_mask(labels.array), L.vessel_mask(labels.array), seed))
+    return subjects
+
+
+TINY = dict(batch_size=2, accumulation=2, depth=18, base_width=8, render_px=32, image_px=64, seed=5, checkpoint_every=1)
+
+
+def test_population_cache_round_trip(tiny_population, tmp_path):
+    path = save_population(tmp_path / "pop.pt", tiny_population, {"seeds": [1, 2]})
+    subjects, recipe = load_population(path)
+    assert recipe == {"seeds": [1, 2]} and [s.name for s in subjects] == ["phantom-1", "phantom-2"]
+    assert subjects[0].channels.shape[0] == 3 and subjects[0].fiducials_mm.shape == (FIDUCIALS, 3)
+    assert torch.allclose(subjects[0].channels, tiny_population[0].channels, atol=1e-3)
+    with pytest.raises(FileNotFoundError):
+        load_population(tmp_path / "missing.pt")
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path) as handle:
+        return list(csv.DictReader(handle))
+
+
+def test_training_runs_logs_checkpoints_and_resumes(tiny_population, tmp_path):
+    out = tmp_path / "run"
+    config = TrainConfig("init", steps=2, **TINY)
+    path = train(config, tiny_population, out, progress=False)
+    rows = _rows(out / LOG_NAME)
+    assert [int(r["step"]) for r in rows] == [1, 2]
+    assert all(np.isfinite(float(r["loss"])) for r in rows) and {"view_ce", "geodesic", "fiducial"} <= set(rows[0])
+    assert torch.load(out / CHECKPOINT_NAME, weights_only=True)["step"] == 2
+    train(TrainConfig("init", steps=3, **TINY), tiny_population, out, progress=False)
+    assert [int(r["step"]) for r in _rows(out / LOG_NAME)] == [1, 2, 3]
+    assert torch.load(out / CHECKPOINT_NAME, weights_only=True)["step"] == 3
+    header = read_model_header(path)
+    assert header["metadata"]["training"]["steps_run"] == 3 and header["metadata"]["training"]["config"]["seed"] == 5
+    net = load_model(path)
+    pose, view, _ = net.predict(torch.rand(1, 1, 64, 64))
+    assert pose.shape == (1, 4, 4)
+    with pytest.raises(ValueError, match="different configuration"):
+        train(TrainConfig("init", steps=4, **{**TINY, "seed": 6}), tiny_population, out, progress=False)
+
+
+def test_refine_training_starts_from_the_init_encoder(tiny_population, tmp_path):
+    init_path = train(TrainConfig("init", steps=1, **TINY), tiny_population, tmp_path / "init", progress=False)
+    config = TrainConfig("refine", steps=1, init_model=str(init_path), calibration_samples=4, bank_size=4, **TINY)
+    path = train(config, tiny_population, tmp_path / "refine", progress=False)
+    meta = read_model_header(path)["metadata"]["training"]
+    lo, hi = R.CALIBRATION_CLAMP
+    for got, base in zip(meta["perturbation"]["lat_translation_mm"], R.REFINE_LAT_TRANSLATION_SD_MM):
+        assert lo * base - 1e-6 <= got <= hi * base + 1e-6
+    assert len(_rows(tmp_path / "refine" / LOG_NAME)) == 1
+    with pytest.raises(ValueError, match="init-model"):
+        TrainConfig("refine", steps=1)
+
+
+def _ddp_worker(rank: int, port: int, subjects, out: str) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE="2", LOCAL_RANK=str(rank))
+    torch.set_num_threads(1)
+    train(TrainConfig("init", steps=2, **TINY), subjects, out, device="cpu", progress=False)
+    torch.distributed.destroy_process_group()
+
+
+def test_two_process_gloo_ddp_smoke_run(tiny_population, tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    mp.spawn(_ddp_worker, args=(port, tiny_population, str(tmp_path)), nprocs=2, join=True)
+    rows = _rows(tmp_path / LOG_NAME)
+    assert [int(r["step"]) for r in rows] == [1, 2]
+    ckpt = torch.load(tmp_path / CHECKPOINT_NAME, weights_only=True)
+    assert ckpt["step"] == 2 and len(ckpt["data_rng"]) == 2
+    assert read_model_header(tmp_path / "init.pt")["metadata"]["training"]["world_size"] == 2
+
+
+# ------------------------------------------------------------------ manifest
+def test_manifest_verification_detects_corruption(tiny_population, tmp_path):
+    path = train(TrainConfig("init", steps=1, **TINY), tiny_population, tmp_path / "run", progress=False)
+    models = tmp_path / "models"
+    models.mkdir()
+    target = models / "geopose_init.pt"
+    target.write_bytes(path.read_bytes())
+    write_manifest(models, {"init": model_entry(target)})
+    assert verify_manifest(models) == {"init": target}
+    data = bytearray(target.read_bytes())
+    data[-10] ^= 0xFF
+    target.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="SHA-256"):
+        verify_manifest(models)
+    with pytest.raises(FileNotFoundError, match="manifest.json"):
+        verify_manifest(tmp_path)
+
+
+def test_shipped_models_verify_and_load():
+    files = verify_manifest(MODELS)
+    assert set(files) == {"init", "refine"}
+    manifest = json.loads((MODELS / "manifest.json").read_text())
+    assert sum(e["bytes"] for e in manifest["models"].values()) <= 40 * 1024 * 1024
+    for kind, path in files.items():
+        net = load_model(path)
+        assert net.config.kind == kind and read_model_header(path)["storage_dtype"] == "float16"
+        assert manifest["models"][kind]["training"]["config"]["seed"] is not None
+    assert "view_accuracy_with_metadata" in manifest["validation"]
