@@ -256,3 +256,18 @@ def test_shipped_models_verify_and_load():
         assert net.config.kind == kind and read_model_header(path)["storage_dtype"] == "float16"
         assert manifest["models"][kind]["training"]["config"]["seed"] is not None
     assert "view_accuracy_with_metadata" in manifest["validation"]
+
+
+def test_cli_reports_bad_training_input(tmp_path, capsys):
+    from geopose.cli import main
+
+    assert main(["train", "population", "--folder", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p.pt")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    cta = make_subject(1, spacing_mm=5.0).cta
+    from geopose.cta.io import save_volume
+
+    save_volume(cta, tmp_path / "case1.nii.gz")
+    assert main(["train", "population", "--folder", str(tmp_path), "--out", str(tmp_path / "p.pt")]) == 2
+    assert "case1_vessels.nii.gz" in capsys.readouterr().err
+    assert main(["train", "init", "--population", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "run")]) == 2
+    assert "population cache" in capsys.readouterr().err

@@ -69,6 +69,7 @@ def _train(args: argparse.Namespace) -> int:
         weights=LossWeights(render=args.render_loss, param=args.param_weight),
         init_model=str(args.init_model) if getattr(args, "init_model", None) else None,
         checkpoint_every=args.checkpoint_every,
+        calibration_samples=getattr(args, "calibration_samples", 64),
     )
     max_seconds = args.max_minutes * 60 if args.max_minutes else None
     path = train(config, subjects, args.out, device=args.device, data_recipe=recipe, max_seconds=max_seconds)
@@ -131,6 +132,7 @@ def _training_options(p: argparse.ArgumentParser, kind: str) -> None:
     p.add_argument("--checkpoint-every", type=int, default=100)
     if kind == "refine":
         p.add_argument("--init-model", required=True, type=Path, help="trained Init model (encoder init, calibration)")
+        p.add_argument("--calibration-samples", type=int, default=64, help="renders used to measure Init's residuals (0: recipe sd)")
     p.set_defaults(func=_train, kind=kind)
 
 
