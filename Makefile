@@ -25,3 +25,18 @@ test-slow: setup
 
 clean:
 	rm -rf $(VENV) demo_out
+
+# Renderer benchmark against DiffDRR 0.6.1, which lives in its own environment
+# (.venv-diffdrr, built once by benchmarks/setup_diffdrr_env.sh). Tables go to
+# docs/renderer_benchmark.md (+ docs/renderer_benchmark_<device>.json); CUDA is
+# benchmarked too when torch sees a GPU.
+DIFFDRR_PY := .venv-diffdrr/bin/python
+.PHONY: bench-renderer
+
+$(DIFFDRR_PY):
+	benchmarks/setup_diffdrr_env.sh
+
+bench-renderer: | $(DIFFDRR_PY)
+	$(DIFFDRR_PY) benchmarks/bench_renderer.py --threads 2 --device cpu --doc docs/renderer_benchmark.md
+	if $(DIFFDRR_PY) -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then \
+		$(DIFFDRR_PY) benchmarks/bench_renderer.py --device cuda --doc docs/renderer_benchmark.md; fi
