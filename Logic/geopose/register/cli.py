@@ -25,6 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cta", required=True, help="CTA volume (NIfTI, NRRD, MHA or a DICOM series folder)")
     p.add_argument("--dsa-pa", required=True, help="PA DSA run (DICOM XA, NIfTI/NRRD + JSON sidecar, or DICOM folder)")
     p.add_argument("--dsa-lat", required=True, help="lateral DSA run")
+    p.add_argument("--hu-offset", type=float, default=0.0, help="added to the CTA's values to make HU (e.g. -1024)")
     p.add_argument("--cranium-mask", help="CTA cranium mask on the CTA grid (default: computed from the CTA)")
     p.add_argument("--segmentation", help="CTA vessel label map on the CTA grid (default: contrast threshold)")
     p.add_argument("--models", help="folder with the Init and Refine model files (default: the shipped models)")
@@ -44,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
     record = register_files(
         args.cta, args.dsa_pa, args.dsa_lat, args.out,
         cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models, backend=args.backend,
+        hu_offset=args.hu_offset,
         options=RegistrationOptions(args.refine_steps, args.iterations, args.tto_px, args.biplanar, args.device),
         overrides={k: geometry_overrides_from_args(args, prefix=f"{k}-") for k in ("pa", "lat")},
     )
@@ -63,6 +65,7 @@ def register_files(
     backend: str = "torch",
     options: RegistrationOptions | None = None,
     overrides: dict[str, dict] | None = None,
+    hu_offset: float = 0.0,
     progress=None,
 ) -> dict:
     """Read the files, register, and write ``result.json`` and the overlays into ``out``; returns the record.
@@ -74,7 +77,7 @@ def register_files(
     device = resolve_device(options.device)
     options.device = str(device)
     overrides = overrides or {}
-    cta = load_cta(cta_path)
+    cta = load_cta(cta_path, hu_offset=hu_offset)
     runs = {
         "pa": read_dsa(dsa_pa, **overrides.get("pa", {})),
         "lat": read_dsa(dsa_lat, **overrides.get("lat", {})),
