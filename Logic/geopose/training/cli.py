@@ -39,7 +39,7 @@ def _population(args: argparse.Namespace) -> int:
     if (args.phantoms is None) == (args.folder is None):
         raise ValueError("give exactly one of --phantoms SEEDS or --folder DIR")
     if args.phantoms is not None:
-        subjects, report = phantom_population(args.phantoms, args.spacing, args.template_seed, progress=_say)
+        subjects, report = phantom_population(args.phantoms, args.spacing, args.template_seed, progress=_say, workers=args.workers)
         recipe = {"source": "phantom", "seeds": args.phantoms, "spacing_mm": args.spacing, "template_seed": args.template_seed, "canonicalisation_error": report}
     else:
         subjects = folder_population(args.folder, args.template, progress=_say)
@@ -145,6 +145,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--template", type=Path, default=None, help="template CTA (folder mode; default first case)")
     p.add_argument("--template-seed", type=int, default=0, help="phantom whose canonical CTA is the template")
     p.add_argument("--spacing", type=float, default=2.0, help="phantom voxel size (mm)")
+    p.add_argument("--workers", type=int, default=1, help="parallel processes for phantom subjects")
     p.add_argument("--out", required=True, type=Path)
     p.set_defaults(func=_population)
     _training_options(sub.add_parser("init", help="train GeoPose-Init"), "init")

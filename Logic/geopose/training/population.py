@@ -8,8 +8,11 @@ fly) or from a folder of CTAs with vessel label maps (NIfTI/NRRD/MHA).
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import re
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -64,37 +67,57 @@ def subject_from_volumes(name: str, cta: Volume, cranium: np.ndarray, vessels: n
     return TrainingSubject(name, channels, cta.ijk_to_centred, fiducials)
 
 
+def _phantom_template(template_seed: int, spacing_mm: float) -> tuple[Volume, Volume]:
+    from ..phantom import labels as L
+    from ..phantom import make_subject
+
+    template_cta, template_labels = make_subject(template_seed, spacing_mm=spacing_mm).canonical(spacing_mm)
+    return template_cta, template_labels.like(L.cranium_mask(template_labels.array).astype(np.uint8))
+
+
+def _canonical_phantom(seed: int, spacing_mm: float, template: tuple[Volume, Volume]) -> tuple[TrainingSubject, dict]:
+    """One phantom registered to the template on cranium masks; the truth only scores the alignment."""
+    from ..phantom import labels as L
+    from ..phantom import make_subject
+
+    torch.set_num_threads(1)
+    template_cta, template_mask = template
+    subject = make_subject(seed, spacing_mm=spacing_mm)
+    mask = subject.labels.like(L.cranium_mask(subject.labels.array).astype(np.uint8))
+    alignment = align_to_template(mask, template_mask)
+    cta = resample_to_template(subject.cta, template_cta, alignment.moving_to_template)
+    labels = resample_to_template(subject.labels, template_cta, alignment.moving_to_template, labels=True)
+    error = rigid_error(alignment.moving_to_template, subject.native_to_canonical)
+    trained = subject_from_volumes(f"phantom-{seed}", cta, L.cranium_mask(labels.array), L.vessel_mask(labels.array), seed)
+    return trained, {"seed": seed, **error}
+
+
 def phantom_population(
     seeds: list[int],
     spacing_mm: float,
     template_seed: int,
     progress: Callable[[str], None] | None = None,
+    workers: int = 1,
 ) -> tuple[list[TrainingSubject], list[dict]]:
     """Phantom subjects canonicalised by registration to the canonical CTA of ``template_seed``.
 
     Returns the subjects and, per subject, the alignment error of the estimated
     native-to-canonical transform against the phantom's known one (the truth is
-    used only for this report).
+    used only for this report). ``workers`` > 1 builds subjects in parallel processes.
     """
-    from ..phantom import labels as L
-    from ..phantom import make_subject
-
-    template_cta, template_labels = make_subject(template_seed, spacing_mm=spacing_mm).canonical(spacing_mm)
-    template_mask = template_labels.like(L.cranium_mask(template_labels.array).astype(np.uint8))
+    template = _phantom_template(template_seed, spacing_mm)
+    build = partial(_canonical_phantom, spacing_mm=spacing_mm, template=template)
+    if workers > 1:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+            results = list(pool.map(build, seeds))
+    else:
+        results = [build(seed) for seed in seeds]
     subjects, report = [], []
-    for seed in seeds:
-        subject = make_subject(seed, spacing_mm=spacing_mm)
-        mask = subject.labels.like(L.cranium_mask(subject.labels.array).astype(np.uint8))
-        alignment = align_to_template(mask, template_mask)
-        cta = resample_to_template(subject.cta, template_cta, alignment.moving_to_template)
-        labels = resample_to_template(subject.labels, template_cta, alignment.moving_to_template, labels=True)
-        error = rigid_error(alignment.moving_to_template, subject.native_to_canonical)
-        report.append({"seed": seed, **error})
+    for trained, error in results:
         if progress:
-            progress(f"phantom {seed}: rotation error {error['rotation_deg']:.2f} deg, translation {error['translation_mm']:.1f} mm")
-        subjects.append(
-            subject_from_volumes(f"phantom-{seed}", cta, L.cranium_mask(labels.array), L.vessel_mask(labels.array), seed)
-        )
+            progress(f"phantom {error['seed']}: rotation error {error['rotation_deg']:.2f} deg, translation {error['translation_mm']:.1f} mm")
+        subjects.append(trained)
+        report.append(error)
     return subjects, report
 
 
