@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> dict:
     t0 = time.perf_counter()
     volume = rc.head_phantom(args.volume_size)
     print(f"phantom {args.volume_size}^3 built in {time.perf_counter() - t0:.1f} s")
-    _, poses = rc.test_poses(n_random=1, seed=args.seed)
+    _, poses = rc.validation_poses(n_random=1, seed=args.seed)
     r0, t0_ = (x.float().to(device) for x in poses[3:4].euler_zyx())  # a perturbed PA pose
     rows = []
     for size in args.sizes:

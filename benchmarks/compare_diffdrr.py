@@ -325,7 +325,7 @@ def main(argv: list[str] | None = None) -> None:
     device = torch.device(args.device)
     t_start = time.perf_counter()
     volume = rc.head_phantom(args.volume_size) if args.volume == "phantom" else rc.headsq_volume(args.volume_size)
-    names, poses = rc.test_poses(args.n_random)
+    names, poses = rc.validation_poses(args.n_random)
     result = {
         "torch": torch.__version__,
         "diffdrr": rc.diffdrr_version(),

@@ -8,7 +8,6 @@ this checkout if it is not installed); DiffDRR and SimpleITK are optional.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 import sys
 from pathlib import Path
@@ -23,7 +22,7 @@ except ImportError:  # a bare GPU machine: use the checkout's sources
     sys.path.insert(0, str(REPO / "Logic"))
 
 from geopose import contract as C  # noqa: E402
-from geopose.geometry import Detector, RigidTransform, isopose  # noqa: E402
+from geopose.geometry import Detector, RigidTransform  # noqa: E402
 from geopose.volume import Volume  # noqa: E402
 
 HEADSQ_HEADER = REPO.parent / "shared" / "data" / "headsq" / "quarter_sidecar.mhd"
@@ -122,9 +121,10 @@ def _paint_tube(hu, x, y, z, pts: torch.Tensor, radius: float, value: float) -> 
     hu[tuple(a[near] for a in idx)] = value
 
 
-def smooth_blobs(n: int = 32, spacing_mm: float = 4.0, seed: int = 0, taper: bool = True) -> Volume:
-    """A smooth density-like volume for gradient checks: Gaussian blobs, multiplied (if
-    ``taper``) by a smooth window that vanishes at the grid border."""
+def smooth_blobs(n: int = 32, spacing_mm: float = 4.0, seed: int = 0) -> Volume:
+    """A smooth volume for gradient checks: Gaussian blobs times a smooth window that
+    vanishes at the grid border. Values lie in [0, 5], inside the soft-tissue HU range,
+    so ``hu_to_density`` only min-max rescales them."""
     g = torch.Generator().manual_seed(seed)
     affine = lps_like_affine((n, n, n), spacing_mm, origin_mm=(3.0, -2.0, 5.0))
     x, y, z = _grid_mm((n, n, n), affine)
@@ -134,9 +134,8 @@ def smooth_blobs(n: int = 32, spacing_mm: float = 4.0, seed: int = 0, taper: boo
         c = (torch.rand(3, generator=g) - 0.5) * half
         s = (0.12 + 0.1 * torch.rand(1, generator=g)) * half
         vol += torch.exp(-((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2) / (2 * s**2))
-    if taper:
-        for a in (x, y, z):
-            vol *= (1 - (a / half) ** 2).clamp_min(0) ** 2
+    for a in (x, y, z):
+        vol *= (1 - (a / half) ** 2).clamp_min(0) ** 2
     return Volume(vol.numpy(), affine, {"name": "smooth_blobs"})
 
 
@@ -173,7 +172,7 @@ def headsq_volume(n: int = 256) -> Volume:
     return Volume(hu.astype(np.float32), ras, {"name": f"headsq_{n}"})
 
 
-def test_poses(n_random: int = 5, seed: int = 0, dtype=torch.float64) -> tuple[list[str], RigidTransform]:
+def validation_poses(n_random: int = 5, seed: int = 0, dtype=torch.float64) -> tuple[list[str], RigidTransform]:
     """The three isoposes plus ``n_random`` perturbed ones (Gaussian, CONVENTIONS section 6)."""
     g = torch.Generator().manual_seed(seed)
     names = ["LAT- iso", "PA iso", "LAT+ iso"]
@@ -191,11 +190,6 @@ def test_poses(n_random: int = 5, seed: int = 0, dtype=torch.float64) -> tuple[l
         )
         names.append(f"{C.VIEW_NAMES[v]} random {b - 2}")
     return names, RigidTransform.from_euler_zyx(r, t)
-
-
-def euler_params(poses: RigidTransform) -> tuple[torch.Tensor, torch.Tensor]:
-    """Euler ZYX rotation (rad) and rotated-frame translation (mm) of each pose."""
-    return poses.euler_zyx()
 
 
 def ncc(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -315,14 +309,6 @@ def model_detector(rows: int) -> Detector:
 def relative_l1(a: torch.Tensor, b: torch.Tensor) -> float:
     """``sum|a - b| / sum|b|``."""
     return float((a.double() - b.double()).abs().sum() / b.double().abs().sum().clamp_min(1e-30))
-
-
-def isopose_pa() -> RigidTransform:
-    return isopose(C.VIEW_PA, dtype=torch.float64)
-
-
-def deg(rad: float) -> float:
-    return rad * 180.0 / math.pi
 
 
 def autograd_and_fd_gradients(

@@ -32,7 +32,7 @@ def scene():
     torch.set_num_threads(2)
     volume = rc.head_phantom(n=64, spacing_mm=3.0)
     detector = rc.model_detector(64)
-    names, poses = rc.test_poses(n_random=3, seed=2)
+    names, poses = rc.validation_poses(n_random=3, seed=2)
     return volume, detector, names, poses
 
 

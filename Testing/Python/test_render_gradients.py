@@ -31,7 +31,7 @@ def setup():
     torch.manual_seed(0)
     volume = rc.smooth_blobs(n=16, spacing_mm=VOXEL_MM)
     detector = rc.model_detector(16)
-    names, poses = rc.test_poses(n_random=2, seed=1)
+    names, poses = rc.validation_poses(n_random=2, seed=1)
     return volume, detector, names, poses
 
 
