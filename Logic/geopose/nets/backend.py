@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from .decoding import as_view_labels, decode_init_pose, residual_from_raw, select_view
-from .model_io import find_model_files, load_model
+from .model_io import load_model, model_files
 from .onnx_export import export_onnx, onnx_kind
 from .preprocess import normalize_minmax
 
@@ -106,7 +106,7 @@ def _model_files(source: str | os.PathLike | Mapping[str, str | os.PathLike]) ->
         if set(files) != {"init", "refine"}:
             raise ValueError(f"model files must be given for both 'init' and 'refine', got {sorted(source)}")
         return files
-    return find_model_files(source)
+    return model_files(source)
 
 
 def make_predictors(

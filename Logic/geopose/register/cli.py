@@ -10,7 +10,7 @@ from ..cta import load_cta
 from ..cta.io import file_sha256
 from ..dsa import geometry_override_args, geometry_overrides_from_args, read_dsa
 from ..nets import make_predictors
-from ..nets.model_io import find_model_files, read_model_header
+from ..nets.model_io import model_files, read_model_header
 from ..resources import default_models_dir
 from .. import contract as C
 from .evaluate import load_truth, truth_metrics
@@ -84,7 +84,7 @@ def register_files(
     }
     cranium = load_cta(cranium_mask, check_hu=False) if cranium_mask else None
     seg = load_cta(segmentation, check_hu=False) if segmentation else None
-    files = find_model_files(Path(models) if models else default_models_dir())
+    files = model_files(Path(models) if models else default_models_dir())
     init, refine = make_predictors(files, backend=backend, device=device)
     case = register_case(
         cta, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=seg, options=options,
