@@ -6,7 +6,7 @@ Frames are *attenuation-like* (contrast, bone residue bright) before they are
 stored; the stored DICOM pixels follow ``DSARun.from_attenuation`` (MONOCHROME2,
 absorbers dark). Per frame: the bolus (arterial, then a delayed distal arterial
 wave and a capillary blush), subtraction residue from small patient motion
-(the difference of two slightly shifted total-density renders), quantum noise
+(per frame, a slightly moved total-density render minus the mask one), quantum noise
 whose level grows with the attenuation behind it (so a MAP shows a grainy
 cranium silhouette), detector blur, collimation and a burnt-in text annotation.
 The written matrix is capped at ``max_matrix_px`` (default 1024, 8-bit), which
@@ -54,6 +54,10 @@ HEAD_ATTENUATION = 4.0
 STORED_MAX = 255
 #: Ray-marching step (mm) of the DSA renders: coarser than the DRR default, for speed.
 RENDER_STEP_MM = 1.5
+#: Patient motion between the mask and each live frame (zero-mean tremor, drawn per frame):
+#: in-plane rotation sd (deg) and shift sd (render pixels) at full amplitude.
+MOTION_ROTATION_SD_DEG = 0.3
+MOTION_SHIFT_SD_PX = 0.6
 
 
 @dataclass(frozen=True)
@@ -146,11 +150,13 @@ def _blur(img: torch.Tensor, sigma_px: float) -> torch.Tensor:
     return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
 
 
-def _moved(img: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
-    """``img`` (h, w) resampled after a small in-plane rigid motion (0.2-1 deg, ~1 px)."""
-    a = math.radians(rng.uniform(0.2, 1.0)) * rng.choice([-1.0, 1.0])
+def _moved(img: torch.Tensor, rng: np.random.Generator, amplitude: float) -> torch.Tensor:
+    """``img`` (h, w) resampled after a small random in-plane rigid motion about the image
+    centre: rotation sd ``amplitude * MOTION_ROTATION_SD_DEG``, shift sd
+    ``amplitude * MOTION_SHIFT_SD_PX`` (render pixels), directions drawn independently."""
+    a = math.radians(rng.normal(0.0, MOTION_ROTATION_SD_DEG * amplitude))
     h, w = img.shape
-    tx, ty = rng.normal(0.0, 1.0, 2) * 2.0 / np.array([w, h])
+    tx, ty = rng.normal(0.0, MOTION_SHIFT_SD_PX * amplitude, 2) * 2.0 / np.array([w, h])
     theta = torch.tensor([[[math.cos(a), -math.sin(a), tx], [math.sin(a), math.cos(a), ty]]], dtype=img.dtype)
     grid = F.affine_grid(theta, (1, 1, h, w), align_corners=False)
     return F.grid_sample(img[None, None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0, 0]
@@ -195,9 +201,6 @@ def simulate_dsa(
     p0 = pose.matrix.double()
     with torch.no_grad():
         tot0, cran, early, late = drr(RigidTransform(p0.float()), det_r)[0].double()  # total, cranium, early, late
-    # motion: the live frames see the head slightly moved (in-plane shift and rotation
-    # of the total-density render); the mask minus live difference is the residue
-    tot1 = _moved(tot0, rng)
     k_att = HEAD_ATTENUATION / max(float(torch.quantile(tot0.flatten(), 0.995)), 1e-6)
     times = np.arange(T, dtype=float)
     t_peak = rng.uniform(0.15, 0.35) * max(T - 1, 1)
@@ -205,7 +208,12 @@ def simulate_dsa(
     a_early = _gamma_variate(times, t_peak - width, width)
     a_late = _gamma_variate(times, t_peak - 0.6 * width, width)
     capillary = _gamma_variate(times, t_peak + 0.3 * width, 1.8 * width)
-    drift = np.clip(times / max(T - 1, 1) * rng.uniform(0.3, 1.0) + rng.normal(0, 0.15, T), -0.3, 1.2)
+    # motion: each live frame sees the head slightly moved against the mask frame (a fresh
+    # in-plane shift and rotation of the total-density render, growing over the run); the
+    # live minus mask difference is the residue. Directions vary frame to frame, so the MAP
+    # shows a residue rim around the head rather than one displaced edge.
+    amplitude = np.clip(times / max(T - 1, 1) * rng.uniform(0.3, 1.0) + rng.normal(0, 0.15, T), 0.0, 1.2)
+    residue = [_moved(tot0, rng, float(amplitude[t])) - tot0 for t in range(T)]
 
     vessel_gain = rng.uniform(0.8, 1.2) * k_att * 3.0
     blush = rng.uniform(0.02, 0.06) * k_att
@@ -213,7 +221,7 @@ def simulate_dsa(
     base = torch.stack([
         vessel_gain * (float(a_early[t]) * early + float(a_late[t]) * late)
         + blush * float(capillary[t]) * cran
-        + residue_gain * float(drift[t]) * (tot1 - tot0)
+        + residue_gain * residue[t]
         for t in range(T)
     ])[:, None]
     base = _blur(base.float(), rng.uniform(0.5, 1.0))
