@@ -38,6 +38,10 @@ LABEL_GROUPS = {"cranium": [CRANIUM_BIT, CRANIUM_BIT | VESSEL_BIT], "vessels": [
 CRANIUM_CHANNEL = 1
 VESSEL_CHANNEL = 2
 VIEW_KEYS = ("pa", "lat")
+#: Default TTO image size (pixels along the detector's longer side): the GPU affords
+#: the model resolution; on a CPU half of it keeps a registration under a minute.
+TTO_PX_CUDA = 256
+TTO_PX_CPU = 128
 
 
 @dataclass
@@ -46,7 +50,7 @@ class RegistrationOptions:
 
     refine_steps: int = C.GREEDY_MAX_PROPOSALS
     iterations: int = C.TTO_ITERATIONS
-    tto_px: int | None = None
+    tto_px: int | None = None  # None: TTO_PX_CUDA on a GPU, TTO_PX_CPU on a CPU
     biplanar: bool = False
     device: str = "auto"
 
@@ -169,8 +173,7 @@ def register_case(
     for i, key in enumerate(VIEW_KEYS):
         monitor.step("prepare", (i + 1) / 3, f"DSA {key.upper()}")
         kwargs = {"mask": dsa_masks[key]} if dsa_masks and key in dsa_masks else {}
-        if options.tto_px:
-            kwargs["tto_px"] = options.tto_px
+        kwargs["tto_px"] = options.tto_px or (TTO_PX_CUDA if device.type == "cuda" else TTO_PX_CPU)
         prepared[key] = preprocess_dsa(dsa[key], **kwargs)
     if prepared["pa"].view_role != PA_ROLE or prepared["lat"].view_role != LAT_ROLE:
         raise ValueError(
