@@ -40,7 +40,7 @@ from geopose.nets import (
 )
 from geopose.nets.backend import OnnxInitPredictor, OnnxRefinePredictor
 from geopose.nets.checkpoint import (
-    PUBLISHED_MANIFEST,
+    published_manifest_path,
     import_checkpoint,
     read_checkpoint_state_dict,
     register,
@@ -303,7 +303,7 @@ def test_import_checkpoint_runs_no_pickled_code(tmp_path, factory):
 
 
 def test_official_names_are_verified(tmp_path):
-    manifest = json.loads(PUBLISHED_MANIFEST.read_text())
+    manifest = json.loads(published_manifest_path().read_text())
     ckpt = fake_lightning_checkpoint(tmp_path / "geopose_init.ckpt", small_init(), tmp_path / "m")
     with pytest.raises(ValueError, match=r"named like the published geopose_init\.ckpt .* bytes"):
         import_checkpoint(ckpt, tmp_path / "out.pt")

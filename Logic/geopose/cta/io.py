@@ -17,6 +17,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..geometry.frames import RAS_TO_LPS
+from ..checksums import file_sha256
 from ..volume import Volume
 
 __all__ = [
@@ -49,16 +50,6 @@ class CTAInputError(ValueError):
 def _ext(path: Path) -> str:
     name = path.name.lower()
     return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
-
-
-def file_sha256(paths: list[Path]) -> str:
-    """SHA-256 (hex) of the bytes of ``paths`` concatenated in the given order."""
-    h = hashlib.sha256()
-    for p in paths:
-        with open(p, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-    return h.hexdigest()
 
 
 def _detached_data_files(header: Path) -> list[Path]:

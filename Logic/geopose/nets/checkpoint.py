@@ -11,7 +11,6 @@ inert :class:`ForeignObject` that records nothing and runs nothing. Only the
 from __future__ import annotations
 
 import collections
-import hashlib
 import json
 import os
 import pickle
@@ -21,15 +20,20 @@ from typing import Any
 
 import torch
 
+from ..checksums import file_sha256
+from ..resources import default_models_dir
 from .model_io import MODEL_SUFFIX, save_model
 from .models import InitNet, NetConfig, RefineNet, build_model
 from .resnet import BLOCKS_PER_STAGE, BackboneConfig
 
-#: Copy of shared/reference/geopose_checkpoints.json (MIT), shipped with the module.
-PUBLISHED_MANIFEST = Path(__file__).resolve().parents[3] / "Resources" / "Models" / "published_checkpoints.json"
+#: Copy of shared/reference/geopose_checkpoints.json (MIT), shipped in Resources/Models.
+PUBLISHED_MANIFEST_NAME = "published_checkpoints.json"
+
+
+def published_manifest_path() -> Path:
+    return default_models_dir() / PUBLISHED_MANIFEST_NAME
 #: State-dict prefixes of the published Refine checkpoint that are training-only.
 IGNORED_PREFIXES = ("criterion.",)
-_HASH_CHUNK_BYTES = 1 << 20
 
 _STORAGE_DTYPES: dict[str, torch.dtype] = {
     "DoubleStorage": torch.float64,
@@ -156,20 +160,13 @@ def read_checkpoint_state_dict(path: str | os.PathLike) -> dict[str, torch.Tenso
     return dict(state)
 
 
-def load_manifest(path: str | os.PathLike = PUBLISHED_MANIFEST) -> dict[str, Any]:
+def load_manifest(path: str | os.PathLike | None = None) -> dict[str, Any]:
     """The published checkpoints' manifest (file names, sizes, SHA-256)."""
+    path = published_manifest_path() if path is None else path
     if not Path(path).is_file():
         raise FileNotFoundError(f"the published checkpoint manifest {path} is missing; reinstall GeoPose")
     with open(path, encoding="utf-8") as handle:
         return json.load(handle)
-
-
-def sha256_file(path: str | os.PathLike) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(_HASH_CHUNK_BYTES), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def official_entry(path: str | os.PathLike, manifest: dict[str, Any]) -> tuple[str, dict[str, Any]] | None:
@@ -187,7 +184,7 @@ def verify_official(path: str | os.PathLike, official: str, entry: dict[str, Any
     remedy = f"download {official} again from the GeoPose release, or rename the file if it is your own model"
     if size != entry["bytes"]:
         raise ValueError(f"{path} is named like the published {official} but has {size} bytes, not {entry['bytes']}; {remedy}")
-    digest = sha256_file(path)
+    digest = file_sha256(path)
     if digest != entry["sha256"]:
         raise ValueError(f"{path} is named like the published {official} but its SHA-256 is {digest}, not {entry['sha256']}; {remedy}")
 
@@ -230,7 +227,7 @@ def module_from_state_dict(state: dict[str, torch.Tensor]) -> InitNet | RefineNe
 
 
 def import_checkpoint(
-    checkpoint: str | os.PathLike, out: str | os.PathLike, *, dtype: str = "float32", manifest_path: str | os.PathLike = PUBLISHED_MANIFEST
+    checkpoint: str | os.PathLike, out: str | os.PathLike, *, dtype: str = "float32", manifest_path: str | os.PathLike | None = None
 ) -> Path:
     """Convert a Lightning ``.ckpt`` into a GeoPose model file; official names are verified first.
 

@@ -8,7 +8,6 @@ executes pickled code. The header names the format, the architecture
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from pathlib import Path
@@ -16,6 +15,7 @@ from typing import Any
 
 import torch
 
+from ..checksums import file_sha256
 from .models import InitNet, NetConfig, RefineNet, build_model
 
 MODEL_FORMAT = "geopose-model"
@@ -24,7 +24,6 @@ MODEL_SUFFIX = ".pt"
 #: The shipped models' manifest (file names, SHA-256, architecture, training record).
 MANIFEST_NAME = "manifest.json"
 MANIFEST_SCHEMA = 1
-_CHUNK = 1 << 20
 #: Storage dtypes a model file may use for its floating-point tensors.
 STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 
@@ -133,14 +132,6 @@ def find_model_files(directory: str | os.PathLike) -> dict[str, Path]:
             "import the published checkpoints with `geopose import-checkpoint` or train one"
         )
     return found
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(_CHUNK), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def verify_manifest(models_dir: str | os.PathLike) -> dict[str, Path]:
