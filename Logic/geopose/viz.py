@@ -69,24 +69,26 @@ def _pad_to(panels: Sequence[np.ndarray], axis: int) -> list[np.ndarray]:
     return out
 
 
-def hstack(panels: Iterable[np.ndarray], gap: int = 4) -> np.ndarray:
-    panels = list(panels)
+def _stack(panels: Iterable[np.ndarray], axis: int, gap: int) -> np.ndarray:
+    panels = _pad_to(list(panels), axis)
     spaced = []
-    for i, p in enumerate(_pad_to(panels, 1)):
+    for i, p in enumerate(panels):
         spaced.append(p)
         if i < len(panels) - 1:
-            spaced.append(np.zeros((p.shape[0], gap, *p.shape[2:]), p.dtype))
-    return np.concatenate(spaced, axis=1)
+            shape = list(p.shape)
+            shape[axis] = gap
+            spaced.append(np.zeros(shape, p.dtype))
+    return np.concatenate(spaced, axis=axis)
+
+
+def hstack(panels: Iterable[np.ndarray], gap: int = 4) -> np.ndarray:
+    """Panels side by side (padded to the tallest), ``gap`` black pixels apart."""
+    return _stack(panels, 1, gap)
 
 
 def vstack(panels: Iterable[np.ndarray], gap: int = 4) -> np.ndarray:
-    panels = list(panels)
-    spaced = []
-    for i, p in enumerate(_pad_to(panels, 0)):
-        spaced.append(p)
-        if i < len(panels) - 1:
-            spaced.append(np.zeros((gap, p.shape[1], *p.shape[2:]), p.dtype))
-    return np.concatenate(spaced, axis=0)
+    """Panels one above the other (padded to the widest)."""
+    return _stack(panels, 0, gap)
 
 
 def save_png(rgb: np.ndarray, path: str | Path) -> Path:

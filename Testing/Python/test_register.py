@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from geopose import contract as C
 from geopose.cta import load_cta
@@ -34,6 +35,7 @@ from geopose.register import (
 )
 from geopose.register.evaluate import load_truth, truth_metrics
 from geopose.register.record import SCHEMA_VERSION, build_record
+from geopose.register.report import write_overlays
 from geopose.render import DRR
 
 
@@ -131,6 +133,13 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
     assert np.allclose(np.asarray(pa["pose_ras"]), cta.centred_to_ras @ np.asarray(pa["pose_centred"]))
     assert len(record["tto_trace"]) == C.TTO_ITERATIONS + 1
     assert pa["quality"]["flag"] in ("ok", "doubtful", "failed")
+    # Overlays: one PNG per view, three stages side by side, vessels drawn in colour.
+    pngs = write_overlays(result, case / "overlays", load_truth(case / "cta.nii.gz").carotid_points_mm)
+    assert [p.name for p in pngs] == ["overlay_pa.png", "overlay_lat.png"]
+    rgb = np.asarray(Image.open(pngs[0]))
+    assert rgb.shape[1] > 3 * rgb.shape[0] * 0.9  # three panels
+    red = (rgb[..., 0] > 200) & (rgb[..., 1] < 120)
+    assert red.sum() > 100  # the projected vessels
 
 
 def _blob_case():
