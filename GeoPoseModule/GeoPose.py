@@ -452,12 +452,14 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
     ) -> dict:
         """Register ``cta`` (scalar volume, HU) to the PA and lateral DSA runs (sequence or
         volume nodes). Input nodes are not modified. Returns the output nodes by name:
-        ``{pa,lat}{Pose,Camera,Frustum,DSA,DSABrowser,MAP,Projection}``, ``table`` and ``result``
-        (the library's record)."""
+        ``{pa,lat}{Pose,Camera,Frustum,DSA,DSABrowser,MAP,Projection}``, ``table``, ``result``
+        (the library's in-memory result) and ``record`` (the JSON-ready result record that
+        ``geopose register`` writes as result.json)."""
         from geopose import contract as C
         from geopose import mrml
         from geopose.nets import make_predictors
         from geopose.register.pipeline import RegistrationOptions, register_case, resolve_device
+        from geopose.register.record import build_record
 
         if cta is None or dsaPA is None or dsaLAT is None:
             raise ValueError("register needs cta, dsaPA and dsaLAT nodes")
@@ -478,6 +480,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         )
         outputs = self.addResultNodes(ctaVolume, runs, result, labels, segments)
         outputs["result"] = result
+        outputs["record"] = build_record(result, runs, inputs={"cta": {"node": cta.GetName()}})
         return outputs
 
     def segmentationLabels(self, segmentation, referenceNode):

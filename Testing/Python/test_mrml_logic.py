@@ -179,6 +179,8 @@ def test_register_phantom_end_to_end(module, tmp_path):
     for key in ("pa", "lat"):
         want = ctaVol.centred_to_ras @ out["result"].views[key].final_pose[0].double().numpy()
         np.testing.assert_allclose(mrml.transform_matrix(out[f"{key}Pose"]), want, atol=1e-6)
+        # ... and equal the result record (result.json) of the same registration
+        np.testing.assert_allclose(mrml.transform_matrix(out[f"{key}Pose"]), np.asarray(out["record"]["views"][key]["pose_ras"]), atol=1e-6)
     path = mrml.save_mrb(scene, tmp_path / "case.mrb")
     s2 = mrml.load_mrb(path)
     np.testing.assert_allclose(mrml.transform_matrix(s2.GetFirstNodeByName("GeoPose PA pose")),
