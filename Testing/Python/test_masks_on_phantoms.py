@@ -1,0 +1,46 @@
+"""The masks users will not have, computed from the data itself, against phantom truth:
+the CTA cranium mask (from the CTA) and the DSA cranium mask (from the run's MAP)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from geopose.cta import cranium_mask_from_cta, vessel_mask_from_cta
+from geopose.dsa import dsa_cranium_mask, temporal_map
+from geopose.phantom import labels as L
+from geopose.phantom import make_subject
+from geopose.phantom.dsa import dsa_renderer, sample_biplane, simulate_dsa
+
+
+def _dice(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a.astype(bool), b.astype(bool)
+    return 2.0 * (a & b).sum() / (a.sum() + b.sum())
+
+
+@pytest.fixture(scope="module")
+def subject():
+    return make_subject(21, spacing_mm=2.0)
+
+
+def test_cta_cranium_and_vessel_masks_match_phantom_truth(subject):
+    cranium = cranium_mask_from_cta(subject.cta).array > 0
+    truth = L.cranium_mask(subject.labels.array)
+    assert _dice(cranium, truth) > 0.85  # 0.90 measured on seed 21: the bone mask also takes skull-base bone below the cranium label
+    vessels = vessel_mask_from_cta(subject.cta, subject.cta.like(cranium.astype(np.uint8))).array > 0
+    true_vessels = L.vessel_mask(subject.labels.array) & truth
+    # An approximation (documented as such): it finds a good share of the intracranial
+    # arteries; its precision is low on phantoms (about 6 % on seed 21: venous sinuses,
+    # diploe and facial bone share the 150-700 HU band), which is why a given
+    # segmentation is preferred and the record says which one was used.
+    assert (vessels & true_vessels).sum() / true_vessels.sum() > 0.3
+
+
+def test_dsa_cranium_mask_matches_projected_cranium(subject):
+    rng = np.random.default_rng(4)
+    drr = dsa_renderer(subject, "cca_left")
+    acqs, iso = sample_biplane(rng, subject)
+    for acq in acqs:
+        sim = simulate_dsa(subject, acq, acq.pose(iso), rng, injection="cca_left", drr=drr, max_matrix_px=256)
+        mask = dsa_cranium_mask(temporal_map(sim.run.attenuation()))
+        assert _dice(mask, sim.cranium_mask) > 0.8, acq.view_role
