@@ -7,7 +7,6 @@ Slicer starts even before the Python dependencies are installed.
 """
 
 import importlib.util
-import logging
 import math
 import sys
 from pathlib import Path

@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .contract import MNCC_GLOBAL_WEIGHT, MNCC_PATCH_PX, MODEL_SDD_MM, NCC_EPS, VIEW_NAMES
-from .geometry.rigid import RigidTransform, matrix_to_euler_zyx, params_from_pose, rotation_angle_rad
+from .geometry.rigid import RigidTransform, params_from_pose, rotation_angle_rad
 
 __all__ = [
     "ncc",
@@ -236,7 +236,7 @@ def pose_errors(pred: RigidTransform | Tensor, ref: RigidTransform | Tensor, sdd
     if a.shape != b.shape:
         raise ValueError(f"pred has {a.shape[0]} poses and ref {b.shape[0]}")
     (ra, ta), (rb, tb) = params_from_pose(a), params_from_pose(b)
-    d_euler = torch.remainder(matrix_to_euler_zyx(a[:, :3, :3]) - matrix_to_euler_zyx(b[:, :3, :3]) + math.pi, 2 * math.pi) - math.pi
+    d_euler = torch.remainder(ra - rb + math.pi, 2 * math.pi) - math.pi
     d_euler = torch.where(d_euler <= -math.pi, d_euler + 2 * math.pi, d_euler)
     dt = ta - tb
     return PoseErrors(

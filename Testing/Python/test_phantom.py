@@ -19,7 +19,6 @@ from geopose.phantom.cli import OUTPUT_FILES, register
 from geopose.phantom.dsa import (
     DETECTOR_MATRICES_PX,
     SDD_RANGE_MM,
-    Acquisition,
     dsa_renderer,
     sample_acquisition,
     sample_biplane,

@@ -9,7 +9,6 @@ against known answers without any trained weights.
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,6 @@ from geopose.register import (
     calibrated_init,
     greedy_refine,
     register_case,
-    render_model_view,
 )
 from geopose.register.evaluate import load_truth, truth_metrics
 from geopose.register.record import SCHEMA_VERSION, build_record

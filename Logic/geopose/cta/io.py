@@ -9,7 +9,6 @@ rescale slope/intercept is applied by the reader.
 
 from __future__ import annotations
 
-import hashlib
 import re
 from pathlib import Path
 

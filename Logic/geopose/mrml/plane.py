@@ -14,7 +14,6 @@ the image's IJK-to-RAS is the fixed composition
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import Mapping
 
 import numpy as np
 import slicer
