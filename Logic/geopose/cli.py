@@ -16,6 +16,7 @@ COMMANDS: list[tuple[str, str]] = [
     ("geopose.nets.checkpoint", "register"),
     ("geopose.training.cli", "register"),
     ("geopose.register.cli", "register"),
+    ("geopose.bench.cli", "register"),
     ("geopose.phantom.cli", "register"),
     ("geopose.phantom.gallery", "register"),
 ]

@@ -61,6 +61,8 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
             "file": f"dsa_{name}.dcm",
             "pose_camera_to_world": sim.pose.tolist(),
             "pose_frame": "centred native CTA frame (mm), CONVENTIONS sections 1-2",
+            "table_rotation": np.round(acq.table_rotation, 9).tolist(),
+            "table_rotation_doc": "3x3 from the angiography table's axes (those of the DICOM angles) to the native frame",
             "primary_deg": acq.angles.primary_deg, "secondary_deg": acq.angles.secondary_deg,
             "sid_mm": acq.angles.sid_mm, "sod_mm": acq.angles.sod_mm,
             "acquired_matrix_px": list(acq.detector.shape), "written_matrix_px": list(sim.run.detector.shape),

@@ -16,7 +16,8 @@ keeps a 26-frame run under 30 MB; the physical detector size is kept.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -31,7 +32,10 @@ from ..render import DRR
 from . import labels as L
 from .subject import Subject
 
-__all__ = ["Acquisition", "SyntheticDSA", "INJECTIONS", "sample_acquisition", "sample_biplane", "dsa_renderer", "simulate_dsa"]
+__all__ = [
+    "Acquisition", "ImagedHead", "SyntheticDSA", "INJECTIONS", "sample_acquisition", "sample_biplane", "dsa_renderer",
+    "simulate_dsa",
+]
 
 #: Detector matrices (pixels square) seen clinically (870 to 1920) and their weights.
 DETECTOR_MATRICES_PX = (880, 960, 1024, 1240, 1344, 1428, 1440, 1536, 1904, 1920)
@@ -60,19 +64,31 @@ MOTION_ROTATION_SD_DEG = 0.3
 MOTION_SHIFT_SD_PX = 0.6
 
 
+#: Head tilt on the angiography table against the head's own axes, sd per Euler angle (deg).
+TABLE_TILT_SD_DEG = 4.0
+
+
 @dataclass(frozen=True)
 class Acquisition:
-    """One C-arm view as acquired: DICOM angles, the full detector, frames and frame time."""
+    """One C-arm view as acquired: DICOM angles, the full detector, frames and frame time.
+
+    ``table_rotation`` (3x3) turns the angiography table's axes (those the DICOM
+    angles refer to) into the centred native CTA frame: the patient lies on the
+    angiography table differently than on the CT table, so the angles alone are
+    only the *native* initial guess."""
 
     view_role: str
     angles: CArmAngles
     detector: Detector
     n_frames: int
     frame_time_ms: float
+    table_rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def pose(self, isocentre_mm: np.ndarray) -> RigidTransform:
-        """Camera-to-world pose (centred native frame) with the isocentre at ``isocentre_mm``."""
+        """True camera-to-world pose (centred native frame) with the isocentre at ``isocentre_mm``."""
         m = pose_from_carm_angles(self.angles).matrix.clone()
+        rot = torch.as_tensor(np.asarray(self.table_rotation, float), dtype=m.dtype)
+        m[0, :3, :] = rot @ m[0, :3, :]
         m[0, :3, 3] += torch.as_tensor(np.asarray(isocentre_mm, float), dtype=m.dtype)
         return RigidTransform(m)
 
@@ -103,9 +119,16 @@ def sample_acquisition(rng: np.random.Generator, view_role: str) -> Acquisition:
 
 def sample_biplane(rng: np.random.Generator, subject: Subject) -> tuple[list[Acquisition], np.ndarray]:
     """A PA and a LAT acquisition sharing one isocentre (centred native mm, the
-    head's nominal isocentre plus a random patient offset of about 8 mm)."""
+    head's nominal isocentre plus a random patient offset of about 8 mm) and one
+    table rotation: the head's axes in the native frame, tilted by about
+    ``TABLE_TILT_SD_DEG`` per axis (the head lies differently than in the CT)."""
     iso = subject.isocentre_native_mm + rng.normal(0.0, 8.0, 3)
-    return [sample_acquisition(rng, PA_ROLE), sample_acquisition(rng, LAT_ROLE)], iso
+    tilt = RigidTransform.from_euler_zyx(
+        torch.as_tensor(np.radians(rng.normal(0.0, TABLE_TILT_SD_DEG, (1, 3)))), torch.zeros(1, 3, dtype=torch.float64)
+    ).matrix[0, :3, :3].numpy()
+    table = subject.head_to_native[:3, :3] @ tilt
+    acqs = [replace(sample_acquisition(rng, role), table_rotation=table) for role in (PA_ROLE, LAT_ROLE)]
+    return acqs, iso
 
 
 @dataclass
@@ -177,8 +200,15 @@ def _burn_text(frames: np.ndarray, rng: np.random.Generator, view: str, value: f
     frames[:, np.asarray(layer) > 127] = value
 
 
+class ImagedHead(Protocol):
+    """What :func:`simulate_dsa` reads of a head besides its renderer."""
+
+    seed: int
+    centerlines: list[dict]
+
+
 def simulate_dsa(
-    subject: Subject,
+    subject: Subject | ImagedHead,
     acquisition: Acquisition,
     pose: RigidTransform,
     rng: np.random.Generator,
@@ -189,7 +219,9 @@ def simulate_dsa(
     max_matrix_px: int = 1024,
 ) -> SyntheticDSA:
     """Simulate one DSA run of ``subject`` seen from ``pose`` (camera-to-world, centred
-    native frame) with the intrinsics and timing of ``acquisition``."""
+    native frame) with the intrinsics and timing of ``acquisition``. Given ``drr``
+    (channels total, cranium, early, late), ``subject`` may be any :class:`ImagedHead`,
+    e.g. a real CT whose artery channels are empty (a contrast-free run)."""
     det_full = acquisition.detector
     det_out = det_full if max(det_full.shape) <= max_matrix_px else det_full.resized(max_matrix_px)
     det_r = det_full.resized(render_px)
@@ -254,7 +286,10 @@ def simulate_dsa(
     mask = (cran_full > 0.02 * float(cran.max())).numpy()
     carotids = {}
     for name in ("ica_left", "ica_right"):
-        pts = np.concatenate([c["points_mm"] for c in subject.centerlines if c["name"] == name])
+        lines = [c["points_mm"] for c in subject.centerlines if c["name"] == name]
+        if not lines:
+            continue
+        pts = np.concatenate(lines)
         px, _ = project_points(RigidTransform(p0), det_out, torch.as_tensor(pts))
         carotids[name] = px[0].numpy()
     return SyntheticDSA(run, att.max(0), mask, carotids, p0[0].numpy(), injection)

@@ -28,7 +28,10 @@ from .quality import Quality, assess
 from .refine import RefineTrace, greedy_refine
 from .tto import TTOResult, TTOView, test_time_optimise
 
-__all__ = ["RegistrationOptions", "ViewOutcome", "CaseRegistration", "register_case", "resolve_device", "case_labels"]
+__all__ = [
+    "RegistrationOptions", "ViewOutcome", "CaseRegistration", "PreparedCase", "prepare_case", "register_case",
+    "final_mncc", "resolve_device", "case_labels",
+]
 
 #: Label values of the combined CTA label map handed to the renderer.
 CRANIUM_BIT = 1
@@ -139,6 +142,60 @@ def silhouette_dice(drr: DRR, pose: torch.Tensor, prepared: PreparedDSA) -> floa
     return 1.0 if denom == 0 else 2.0 * int((sil & ref).sum()) / denom
 
 
+@dataclass
+class PreparedCase:
+    """A case ready for the stages: the combined CTA labels, the renderer on the
+    chosen device, and each view's preprocessed DSA (``{"pa", "lat"}``)."""
+
+    labels: Volume
+    labels_source: dict
+    drr: DRR
+    views: dict[str, PreparedDSA]
+    device: torch.device
+
+    def model_target(self, key: str) -> torch.Tensor:
+        """View ``key``'s model-geometry MAP ``(1, 1, 256, 256)`` on the case device."""
+        return _tensor(self.views[key].model_image, self.device)
+
+    def tto_view(self, key: str, pose: torch.Tensor) -> TTOView:
+        """View ``key`` set up for :func:`test_time_optimise`, starting from ``pose`` ``(1, 4, 4)``."""
+        p = self.views[key]
+        return TTOView(key, _tensor(p.tto_image, self.device), _tensor(p.tto_mask, self.device), p.tto_detector, pose.float())
+
+
+def prepare_case(
+    cta: Volume,
+    dsa: Mapping[str, DSARun],
+    *,
+    cranium_mask: Volume | None = None,
+    segmentation: Volume | None = None,
+    dsa_masks: Mapping[str, np.ndarray] | None = None,
+    options: RegistrationOptions | None = None,
+    monitor: Monitor | None = None,
+) -> PreparedCase:
+    """CTA labels + renderer and the preprocessed PA / lateral runs (checked against their roles)."""
+    options = options or RegistrationOptions()
+    monitor = monitor or Monitor()
+    if set(dsa) != set(VIEW_KEYS):
+        raise ValueError(f"need one PA and one lateral DSA run as {{'pa': ..., 'lat': ...}}, got {sorted(dsa)}")
+    device = resolve_device(options.device)
+    monitor.step("prepare", 0.0, "CTA masks")
+    labels, labels_source = case_labels(cta, cranium_mask, segmentation)
+    drr = DRR.from_volume(cta, Detector.model(), labels=labels, label_groups=LABEL_GROUPS, device=device)
+    prepared: dict[str, PreparedDSA] = {}
+    for i, key in enumerate(VIEW_KEYS):
+        monitor.step("prepare", (i + 1) / 3, f"DSA {key.upper()}")
+        kwargs = {"mask": dsa_masks[key]} if dsa_masks and key in dsa_masks else {}
+        kwargs["tto_px"] = options.tto_px or (TTO_PX_CUDA if device.type == "cuda" else TTO_PX_CPU)
+        prepared[key] = preprocess_dsa(dsa[key], **kwargs)
+    if prepared["pa"].view_role != PA_ROLE or prepared["lat"].view_role != LAT_ROLE:
+        raise ValueError(
+            f"the 'pa' run looks {prepared['pa'].view_role} and the 'lat' run {prepared['lat'].view_role} by their "
+            "primary angles: swap them, or override the angle (primary_deg) if the tags are wrong"
+        )
+    return PreparedCase(labels, labels_source, drr, prepared, device)
+
+
 def register_case(
     cta: Volume,
     dsa: Mapping[str, DSARun],
@@ -158,27 +215,14 @@ def register_case(
     same device as ``options.device``. Returns every intermediate pose and trace.
     """
     options = options or RegistrationOptions()
-    if set(dsa) != set(VIEW_KEYS):
-        raise ValueError(f"need one PA and one lateral DSA run as {{'pa': ..., 'lat': ...}}, got {sorted(dsa)}")
-    device = resolve_device(options.device)
     monitor = Monitor(progress, cancel)
     times: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    monitor.step("prepare", 0.0, "CTA masks")
-    labels, labels_source = case_labels(cta, cranium_mask, segmentation)
-    drr = DRR.from_volume(cta, Detector.model(), labels=labels, label_groups=LABEL_GROUPS, device=device)
-    prepared: dict[str, PreparedDSA] = {}
-    for i, key in enumerate(VIEW_KEYS):
-        monitor.step("prepare", (i + 1) / 3, f"DSA {key.upper()}")
-        kwargs = {"mask": dsa_masks[key]} if dsa_masks and key in dsa_masks else {}
-        kwargs["tto_px"] = options.tto_px or (TTO_PX_CUDA if device.type == "cuda" else TTO_PX_CPU)
-        prepared[key] = preprocess_dsa(dsa[key], **kwargs)
-    if prepared["pa"].view_role != PA_ROLE or prepared["lat"].view_role != LAT_ROLE:
-        raise ValueError(
-            f"the 'pa' run looks {prepared['pa'].view_role} and the 'lat' run {prepared['lat'].view_role} by their "
-            "primary angles: swap them, or override the angle (primary_deg) if the tags are wrong"
-        )
+    case = prepare_case(
+        cta, dsa, cranium_mask=cranium_mask, segmentation=segmentation, dsa_masks=dsa_masks, options=options, monitor=monitor
+    )
+    device, drr, prepared = case.device, case.drr, case.views
     _sync(device)
     times["prepare"] = time.perf_counter() - t0
 
@@ -192,18 +236,18 @@ def register_case(
     inits = {}
     for i, key in enumerate(VIEW_KEYS):
         monitor.step("init", i / 2, f"Init {key.upper()}")
-        target = _tensor(prepared[key].model_image, device)
-        inits[key] = calibrated_init(target, key == "lat", init, calibration)
+        inits[key] = calibrated_init(case.model_target(key), key == "lat", init, calibration)
     _sync(device)
     times["init"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    refined = {}
-    for key in VIEW_KEYS:
-        target = _tensor(prepared[key].model_image, device)
-        refined[key] = greedy_refine(
-            drr, target, inits[key].pose_native.float(), inits[key].view, refine, options.refine_steps, monitor=monitor
+    refined = {
+        key: greedy_refine(
+            drr, case.model_target(key), inits[key].pose_native.float(), inits[key].view, refine, options.refine_steps,
+            monitor=monitor,
         )
+        for key in VIEW_KEYS
+    }
     _sync(device)
     times["refine"] = time.perf_counter() - t0
 
@@ -211,16 +255,7 @@ def register_case(
     tto_result = None
     finals = {key: refined[key].pose for key in VIEW_KEYS}
     if options.iterations > 0:
-        views = [
-            TTOView(
-                key,
-                _tensor(prepared[key].tto_image, device),
-                _tensor(prepared[key].tto_mask, device),
-                prepared[key].tto_detector,
-                refined[key].pose.float(),
-            )
-            for key in VIEW_KEYS
-        ]
+        views = [case.tto_view(key, refined[key].pose) for key in VIEW_KEYS]
         tto_result = test_time_optimise(
             drr, views, options.iterations, cranium_channel=CRANIUM_CHANNEL, biplanar=options.biplanar, monitor=monitor
         )
@@ -231,9 +266,7 @@ def register_case(
     outcomes = {}
     for key in VIEW_KEYS:
         p = prepared[key]
-        with torch.no_grad():
-            final_img = drr(finals[key], detector=p.tto_detector, channels=(0,))
-            score = float(mncc(_tensor(p.tto_image, device), final_img))
+        score = final_mncc(drr, finals[key], p, device)
         dice = silhouette_dice(drr, finals[key], p)
         moved = RigidTransform(refined[key].pose.double()).inverse().matrix @ finals[key].double()
         rot = float(torch.rad2deg(rotation_angle_rad(moved[:, :3, :3]))[0])
@@ -241,7 +274,14 @@ def register_case(
         outcomes[key] = ViewOutcome(key, p, inits[key], refined[key], finals[key], score, dice, assess(score, dice, rot, trans))
     times["total"] = sum(times.values())
     monitor.step("done", 1.0, "registration finished")
-    return CaseRegistration(cta, labels, labels_source, calibration, outcomes, tto_result, times, str(device), options, drr)
+    return CaseRegistration(cta, case.labels, case.labels_source, calibration, outcomes, tto_result, times, str(device), options, drr)
+
+
+def final_mncc(drr: DRR, pose: torch.Tensor, prepared: PreparedDSA, device: torch.device) -> float:
+    """mNCC between the DSA MAP and the DRR at ``pose`` in the TTO geometry."""
+    with torch.no_grad():
+        image = drr(pose.float(), detector=prepared.tto_detector, channels=(0,))
+        return float(mncc(_tensor(prepared.tto_image, device), image))
 
 
 def _sync(device: torch.device) -> None:

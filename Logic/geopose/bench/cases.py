@@ -1,0 +1,108 @@
+"""Benchmark cases with known poses: held-out phantom subjects (written and read
+back through the real file formats) and a real head CT with simulated runs.
+
+Seeds of benchmark phantoms must be disjoint from the shipped models' training
+seeds (``Resources/Models/manifest.json``); :func:`training_seeds` reads them.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..cta import cranium_mask_from_cta, load_cta
+from ..dsa import DSARun, read_dsa
+from ..phantom import labels as L
+from ..phantom.cli import write_phantom
+from ..phantom.dsa import sample_acquisition, simulate_dsa
+from ..dsa.run import LAT_ROLE, PA_ROLE
+from ..geometry import Detector
+from ..register.evaluate import load_truth
+from ..render import DRR
+from ..volume import Volume
+
+__all__ = ["BenchCase", "phantom_case", "headsq_case", "training_seeds", "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX"]
+
+#: The VTK headsq file stores raw values: HU = value - 1024.
+HEADSQ_HU_OFFSET = -1024.0
+#: The headsq header puts the head upside down (superior along RAS -z, the face
+#: still anterior): a 180 deg turn about the anterior axis makes it a supine head CT.
+HEADSQ_HEADER_FIX = np.diag([-1.0, 1.0, -1.0, 1.0])
+#: Matrix cap (px) of the simulated runs: enough for the 256 px model input.
+BENCH_MATRIX_PX = 512
+
+
+@dataclass
+class BenchCase:
+    """One case: the CTA (HU) with its masks on the CTA grid, a PA + lateral run,
+    the true poses ``{"pa", "lat"} -> (4, 4)`` (camera-to-centred-native, mm) and the
+    carotid centreline points ``(N, 3)`` (centred native mm; ``None`` without arteries)."""
+
+    name: str
+    cta: Volume
+    cranium: Volume
+    vessels: Volume | None
+    runs: dict[str, DSARun]
+    true_poses: dict[str, np.ndarray]
+    carotid_points_mm: np.ndarray | None
+    notes: list[str] = field(default_factory=list)
+
+
+def training_seeds(manifest: str | Path) -> set[int]:
+    """Phantom seeds the models in ``manifest`` were trained on (template included)."""
+    models = json.loads(Path(manifest).read_text()).get("models", {})
+    seeds: set[int] = set()
+    for entry in models.values():
+        data = entry.get("training", {}).get("data", {})
+        seeds.update(int(s) for s in data.get("seeds", []))
+        if "template_seed" in data:
+            seeds.add(int(data["template_seed"]))
+    return seeds
+
+
+def phantom_case(seed: int, folder: Path, spacing_mm: float = 1.0) -> BenchCase:
+    """Phantom ``seed`` written by ``geopose phantom`` into ``folder`` and read back;
+    the phantom's own cranium and artery labels serve as the CTA masks."""
+    write_phantom(seed, folder, spacing_mm=spacing_mm, max_matrix_px=BENCH_MATRIX_PX)
+    cta = load_cta(folder / "cta.nii.gz")
+    labels = load_cta(folder / "labels.nii.gz", check_hu=False)
+    truth = load_truth(folder / "cta.nii.gz")
+    runs = {key: read_dsa(folder / f"dsa_{key}.dcm") for key in ("pa", "lat")}
+    return BenchCase(
+        f"phantom-{seed}", cta, labels.like(L.cranium_mask(labels.array).astype(np.uint8)),
+        labels.like(L.vessel_mask(labels.array).astype(np.uint8)), runs, truth.poses, truth.carotid_points_mm,
+    )
+
+
+@dataclass
+class _RealHead:
+    seed: int
+    centerlines: list[dict] = field(default_factory=list)
+
+
+def headsq_case(path: str | Path, seed: int = 0) -> BenchCase:
+    """The real head CT ``headsq`` (no contrast) with a PA + lateral run simulated from it
+    at sampled clinical geometries: the runs hold motion residue and noise only, so the
+    measurable results are pose errors, NCC and the cranium silhouette."""
+    raw = load_cta(path, hu_offset=HEADSQ_HU_OFFSET)
+    cta = Volume(raw.array, HEADSQ_HEADER_FIX @ raw.ijk_to_ras, dict(raw.metadata, header_fix="180 deg about A"))
+    cranium = cranium_mask_from_cta(cta)
+    rng = np.random.default_rng([seed, 7])
+    k, j, i = np.nonzero(cranium.array)
+    centroid = (cta.ijk_to_centred @ np.array([i.mean(), j.mean(), k.mean(), 1.0]))[:3]
+    iso = centroid + rng.normal(0.0, 8.0, 3)
+    groups = {"cranium": [1], "early": [], "late": []}
+    drr = DRR.from_volume(cta, Detector.model().resized(256), cranium, groups)
+    runs, poses = {}, {}
+    for key, role in (("pa", PA_ROLE), ("lat", LAT_ROLE)):
+        acq = sample_acquisition(rng, role)
+        sim = simulate_dsa(_RealHead(seed), acq, acq.pose(iso), rng, drr=drr, max_matrix_px=BENCH_MATRIX_PX)
+        runs[key], poses[key] = sim.run, sim.pose
+    notes = [
+        "headsq: real CT without contrast, 3.2 x 3.2 x 1.5 mm, header turned 180 deg about A (it is upside down)",
+        "runs simulated from the CT itself (motion residue + noise, no arteries): no mPCD or clDice",
+    ]
+    return BenchCase("headsq", cta, cranium, None, runs, poses, None, notes)

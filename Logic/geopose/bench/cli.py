@@ -1,0 +1,108 @@
+"""``geopose bench``: the paper's tables on held-out phantom subjects (and a real head CT).
+
+Writes ``OUT/bench.md``, ``OUT/bench.json`` and ``OUT/tto_convergence.png``; each
+case's results are kept in ``OUT/cases/`` so an interrupted run resumes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from .. import __version__
+from .. import contract as C
+from ..nets import make_predictors
+from ..nets.model_io import model_files
+from ..register import resolve_device
+from ..resources import default_models_dir
+from .cases import headsq_case, phantom_case, training_seeds
+from .report import convergence_figure, markdown, summarise
+from .run import BenchSettings, evaluate_case, row_names
+
+#: First held-out phantom seed (training populations use small seeds; checked at run time).
+DEFAULT_SEED_START = 5000
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="benchmark the method on held-out phantom subjects (paper table shape)")
+    p.add_argument("--subjects", type=int, default=40, help="number of held-out phantom subjects")
+    p.add_argument("--out", required=True, help="output folder (bench.md, bench.json, tto_convergence.png)")
+    p.add_argument("--seed-start", type=int, default=DEFAULT_SEED_START, help="first phantom seed")
+    p.add_argument("--long-subjects", type=int, help="subjects that also get the long native TTO (default: all)")
+    p.add_argument("--iterations", type=int, default=C.TTO_ITERATIONS, help="short TTO budget")
+    p.add_argument("--long-iterations", type=int, default=400, help="long native TTO budget (0: skip)")
+    p.add_argument("--spacing-mm", type=float, default=1.0, help="phantom voxel size (mm)")
+    p.add_argument("--headsq", help="the real head CT headsq (quarter_sidecar.mhd) for a transfer run")
+    p.add_argument("--models", help="model folder (default: the shipped models)")
+    p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch")
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    p.add_argument("--tto-px", type=int, help="TTO image size (default: 256 on CUDA, 128 on CPU)")
+    p.set_defaults(func=run)
+
+
+def _load_or_run(path: Path, compute) -> dict:
+    if path.is_file():
+        return json.loads(path.read_text())
+    result = compute()
+    path.write_text(json.dumps(result))
+    return result
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.subjects < 1:
+        raise ValueError(f"--subjects must be at least 1, got {args.subjects}")
+    out = Path(args.out)
+    (out / "cases").mkdir(parents=True, exist_ok=True)
+    models_dir = Path(args.models) if args.models else default_models_dir()
+    seeds = list(range(args.seed_start, args.seed_start + args.subjects))
+    manifest = models_dir / "manifest.json"
+    if manifest.is_file():
+        overlap = sorted(set(seeds) & training_seeds(manifest))
+        if overlap:
+            raise ValueError(f"seeds {overlap[:5]} were used to train these models: choose --seed-start beyond them")
+    device = resolve_device(args.device)
+    init, refine = make_predictors(model_files(models_dir), backend=args.backend, device=device)
+    settings = BenchSettings(args.iterations, args.long_iterations, device=str(device), tto_px=args.tto_px)
+    n_long = args.subjects if args.long_subjects is None else args.long_subjects
+    cases: list[dict] = []
+    t_start = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, seed in enumerate(seeds):
+            long = i < n_long
+            tag = f"phantom-{seed}{'' if long else '-short'}"
+            result = _load_or_run(
+                out / "cases" / f"{tag}.json",
+                lambda: evaluate_case(phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm), init, refine, settings, long=long),
+            )
+            cases.append(result)
+            elapsed = time.perf_counter() - t_start
+            row = f"Init + greedy Refine + {args.iterations} TTO"
+            mpcd = [result["rows"][row][v].get("mpcd_mm") for v in ("pa", "lat")]
+            print(f"[{i + 1}/{len(seeds)}] {tag}: greedy+TTO mPCD PA {mpcd[0]:.2f} / LAT {mpcd[1]:.2f} mm; "
+                  f"elapsed {elapsed / 60:.1f} min", flush=True)
+        transfer = None
+        if args.headsq:
+            transfer = _load_or_run(out / "cases" / "headsq.json", lambda: evaluate_case(headsq_case(args.headsq), init, refine, settings))
+    summary = summarise(cases)
+    header = (
+        f"# GeoPose benchmark on {len(cases)} held-out phantom subjects\n\n"
+        f"Seeds {seeds[0]}..{seeds[-1]} (disjoint from the training seeds), {args.spacing_mm:g} mm phantoms, "
+        f"models `{models_dir.name}` ({args.backend}), device `{device}` ({platform.machine()}, "
+        f"{os.cpu_count()} CPUs, torch {torch.__version__}, {torch.get_num_threads()} threads), geopose {__version__}; "
+        f"long native TTO on {min(n_long, len(cases))} subjects.\n\n"
+        f"Reproduce: `geopose bench --subjects {args.subjects} --long-subjects {n_long} --spacing-mm {args.spacing_mm:g} "
+        f"--out {out}{' --headsq ' + args.headsq if args.headsq else ''}`"
+    )
+    (out / "bench.md").write_text(markdown(summary, header, transfer))
+    (out / "bench.json").write_text(json.dumps({"summary": summary, "cases": cases, "transfer": transfer}, indent=1))
+    curve_rows = [r for r in row_names(settings) if r.startswith(("native + ", "Init + greedy Refine + "))]
+    convergence_figure(cases, curve_rows, out / "tto_convergence.png")
+    print((out / "bench.md").read_text())
+    return 0
