@@ -56,6 +56,9 @@ INJECTIONS = {
 #: Peak log-attenuation of the thickest head path; sets the noise contrast inside vs outside.
 HEAD_ATTENUATION = 4.0
 STORED_MAX = 255
+#: Range of the per-run quantum-noise sd (log-attenuation units) behind zero attenuation;
+#: it grows like ``exp(attenuation / 2)`` through the head.
+QUANTUM_NOISE_SD = (0.010, 0.02)
 #: Ray-marching step (mm) of the DSA renders: coarser than the DRR default, for speed.
 RENDER_STEP_MM = 1.5
 #: Patient motion between the mask and each live frame (zero-mean tremor, drawn per frame):
@@ -261,7 +264,7 @@ def simulate_dsa(
     signal = F.interpolate(base, size=(H, W), mode="bilinear", align_corners=False)[:, 0]
     atten = F.interpolate(tot0[None, None].float() * k_att, size=(H, W), mode="bilinear", align_corners=False)[0, 0]
     # quantum noise in the log domain: its sd grows like exp(attenuation / 2); mottled
-    sigma = rng.uniform(0.010, 0.02) * torch.exp(0.5 * atten.clamp(max=HEAD_ATTENUATION))
+    sigma = rng.uniform(*QUANTUM_NOISE_SD) * torch.exp(0.5 * atten.clamp(max=HEAD_ATTENUATION))
     g = torch.Generator().manual_seed(int(rng.integers(2**31)))
     noise = torch.randn((T, 1, (H + 1) // 2, (W + 1) // 2), generator=g)
     noise = F.interpolate(noise, size=(H, W), mode="bilinear", align_corners=False)[:, 0] * 1.6
