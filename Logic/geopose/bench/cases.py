@@ -8,7 +8,7 @@ seeds (``Resources/Models/manifest.json``); :func:`training_seeds` reads them.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +17,7 @@ from ..cta import cranium_mask_from_cta, load_cta
 from ..dsa import DSARun, read_dsa
 from ..phantom import labels as L
 from ..phantom.cli import write_phantom
-from ..phantom.dsa import sample_acquisition, simulate_dsa
+from ..phantom.dsa import sample_acquisition, simulate_dsa, table_tilt
 from ..dsa.run import LAT_ROLE, PA_ROLE
 from ..geometry import Detector
 from ..register.evaluate import load_truth
@@ -86,7 +86,8 @@ class _RealHead:
 def headsq_case(path: str | Path, seed: int = 0) -> BenchCase:
     """The real head CT ``headsq`` (no contrast) with a PA + lateral run simulated from it
     at sampled clinical geometries: the runs hold motion residue and noise only, so the
-    measurable results are pose errors, NCC and the cranium silhouette."""
+    measurable results are pose errors, NCC and the cranium silhouette. The head is tilted
+    on the angiography table as in the phantom world (``table_tilt``)."""
     raw = load_cta(path, hu_offset=HEADSQ_HU_OFFSET)
     cta = Volume(raw.array, HEADSQ_HEADER_FIX @ raw.ijk_to_ras, dict(raw.metadata, header_fix="180 deg about A"))
     cranium = cranium_mask_from_cta(cta)
@@ -97,8 +98,9 @@ def headsq_case(path: str | Path, seed: int = 0) -> BenchCase:
     groups = {"cranium": [1], "early": [], "late": []}
     drr = DRR.from_volume(cta, Detector.model().resized(256), cranium, groups)
     runs, poses = {}, {}
+    table = table_tilt(rng)
     for key, role in (("pa", PA_ROLE), ("lat", LAT_ROLE)):
-        acq = sample_acquisition(rng, role)
+        acq = replace(sample_acquisition(rng, role), table_rotation=table)
         sim = simulate_dsa(_RealHead(seed), acq, acq.pose(iso), rng, drr=drr, max_matrix_px=BENCH_MATRIX_PX)
         runs[key], poses[key] = sim.run, sim.pose
     notes = [

@@ -33,7 +33,7 @@ from . import labels as L
 from .subject import Subject
 
 __all__ = [
-    "Acquisition", "ImagedHead", "SyntheticDSA", "INJECTIONS", "sample_acquisition", "sample_biplane", "dsa_renderer",
+    "Acquisition", "ImagedHead", "SyntheticDSA", "INJECTIONS", "sample_acquisition", "sample_biplane", "table_tilt", "dsa_renderer",
     "simulate_dsa",
 ]
 
@@ -120,16 +120,19 @@ def sample_acquisition(rng: np.random.Generator, view_role: str) -> Acquisition:
     return Acquisition(role, CArmAngles(primary, secondary, sdd, sod), det, frames, frame_time)
 
 
+def table_tilt(rng: np.random.Generator) -> np.ndarray:
+    """A random 3x3 tilt of the head on the angiography table (``TABLE_TILT_SD_DEG`` per Euler angle)."""
+    angles = torch.as_tensor(np.radians(rng.normal(0.0, TABLE_TILT_SD_DEG, (1, 3))))
+    return RigidTransform.from_euler_zyx(angles, torch.zeros(1, 3, dtype=torch.float64)).matrix[0, :3, :3].numpy()
+
+
 def sample_biplane(rng: np.random.Generator, subject: Subject) -> tuple[list[Acquisition], np.ndarray]:
     """A PA and a LAT acquisition sharing one isocentre (centred native mm, the
     head's nominal isocentre plus a random patient offset of about 8 mm) and one
     table rotation: the head's axes in the native frame, tilted by about
     ``TABLE_TILT_SD_DEG`` per axis (the head lies differently than in the CT)."""
     iso = subject.isocentre_native_mm + rng.normal(0.0, 8.0, 3)
-    tilt = RigidTransform.from_euler_zyx(
-        torch.as_tensor(np.radians(rng.normal(0.0, TABLE_TILT_SD_DEG, (1, 3)))), torch.zeros(1, 3, dtype=torch.float64)
-    ).matrix[0, :3, :3].numpy()
-    table = subject.head_to_native[:3, :3] @ tilt
+    table = subject.head_to_native[:3, :3] @ table_tilt(rng)
     acqs = [replace(sample_acquisition(rng, role), table_rotation=table) for role in (PA_ROLE, LAT_ROLE)]
     return acqs, iso
 
