@@ -237,13 +237,9 @@ class GeoPoseWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.progressBar.show()
         try:
             with slicer.util.tryWithErrorDisplay(_("Registration failed."), waitCursor=True):
-                needTorch = p.backend == "torch" or p.iterations > 0
-                if not self.logic.ensureDependencies(askUser=True, torch=needTorch):
+                if not self.logic.ensureDependencies(askUser=True, torch=True):
                     return
                 iterations = p.iterations
-                if iterations > 0 and not self.logic.torchAvailable():
-                    slicer.util.warningDisplay(_("Test-time optimisation needs PyTorch; running Init + Refine only."))
-                    iterations = 0
                 self._outputs = self.logic.register(
                     cta=p.cta,
                     dsaPA=p.dsaPA,
@@ -344,7 +340,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
                 import PyTorchUtils
             except ImportError:
                 if askUser and not slicer.util.confirmOkCancelDisplay(
-                    _("PyTorch is needed for the torch backend and test-time optimisation. Install it now? "
+                    _("PyTorch is needed to render the CTA (calibration, refinement, test-time optimisation). Install it now? "
                       "(Installing the PyTorch extension gives a choice of CUDA versions.)")
                 ):
                     return self.torchAvailable() or not torch
@@ -454,14 +450,20 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         ``{pa,lat}{Pose,Camera,Frustum,DSA,DSABrowser,MAP,Projection}``, ``table``, ``result``
         (the library's in-memory result) and ``record`` (the JSON-ready result record that
         ``geopose register`` writes as result.json)."""
+        if cta is None or dsaPA is None or dsaLAT is None:
+            raise ValueError("register needs cta, dsaPA and dsaLAT nodes")
+        if not self.torchAvailable():
+            raise RuntimeError(
+                "GeoPose renders the CTA with PyTorch (calibration, refinement and test-time optimisation), and "
+                "PyTorch is not installed: install the PyTorch extension, or run "
+                "GeoPoseLogic().ensureDependencies(torch=True) from the Python console"
+            )
         from geopose import contract as C
         from geopose import mrml
         from geopose.nets import make_predictors
         from geopose.register.pipeline import RegistrationOptions, register_case, resolve_device
         from geopose.register.record import build_record
 
-        if cta is None or dsaPA is None or dsaLAT is None:
-            raise ValueError("register needs cta, dsaPA and dsaLAT nodes")
         ctaVolume = mrml.volume_from_node(cta)
         runs = {"pa": self.dsaRunFromNode(dsaPA, overridesPA), "lat": self.dsaRunFromNode(dsaLAT, overridesLAT)}
         labels, segments = self.segmentationLabels(segmentation, cta)

@@ -138,6 +138,17 @@ def test_dsa_run_from_node_uses_attributes_and_overrides(module):
         "primary_deg": -88.0, "secondary_deg": 0.0, "sid_mm": 1100.0, "pixel_spacing_mm": (0.3, 0.3)}
 
 
+def test_register_without_torch_says_what_to_install(module, monkeypatch):
+    scene = slicer.mrmlScene
+    cta_node = mrml.volume_to_node(scene, _cta()[0], "CTA")
+    logic = module.GeoPoseLogic()
+    monkeypatch.setattr(logic, "torchAvailable", lambda: False)
+    before = scene.GetNumberOfNodes()
+    with pytest.raises(RuntimeError, match="PyTorch is not installed: install the PyTorch extension"):
+        logic.register(cta=cta_node, dsaPA=cta_node, dsaLAT=cta_node)
+    assert scene.GetNumberOfNodes() == before  # nothing half-made
+
+
 def test_import_dsa_places_run_on_nominal_plane(module, tmp_path):
     from geopose.dsa import write_dsa_nifti
 
