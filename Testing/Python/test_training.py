@@ -20,7 +20,7 @@ from geopose.nets import decode_init_pose, load_model, read_model_header, residu
 from geopose.phantom import labels as L
 from geopose.phantom import make_subject
 from geopose.training import recipe as R
-from geopose.training.augment import augment, clahe, preprocessed_map_look
+from geopose.training.augment import augment, clahe
 from geopose.training.canonical import align_to_template, nearest_rotation, resample_to_template, rigid_error
 from geopose.training.losses import double_geodesic, log_se3_geodesic
 from geopose.training.manifest import model_entry, verify_manifest, write_manifest
@@ -124,23 +124,6 @@ def test_augmentation_shapes_ranges_and_reproducibility():
     assert torch.equal(x, before)
     with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
         augment(torch.rand(2, 3, 64, 64), torch.Generator())
-
-
-def test_preprocessed_map_look_is_a_clipped_head_silhouette():
-    """Like CONVENTIONS 5 on a DSA MAP: zero outside the cranium, saturated (clipped at the
-    75th percentile) over much of the head, brighter where the head is thicker."""
-    yy, xx = torch.meshgrid(torch.linspace(-1, 1, 96), torch.linspace(-1, 1, 96), indexing="ij")
-    thickness = (1 - (xx**2 + yy**2) / 0.6).clamp_min(0).sqrt()[None, None]  # a disc, thickest at the centre
-    cranium = thickness.clone()
-    cranium[..., 70:, :] = 0  # the neck below the skull base is outside the cranium
-    y = preprocessed_map_look(thickness, cranium, torch.Generator().manual_seed(0))
-    assert y.shape == thickness.shape and y.amin() == 0 and y.amax() == 1
-    assert float(y[..., 72:, :].max()) == 0  # the neck rows: no cranium, so masked out
-    assert float(y[thickness == 0].max()) == 0  # outside the head
-    inside = cranium > 0.5
-    assert float((y[inside] > 0.9).float().mean()) > 0.3  # much of the head saturates
-    centre, rim = y[..., 40:56, 40:56].mean(), y[inside & (thickness < 0.6)].mean()
-    assert centre > rim
 
 
 def test_clahe_equalises_a_low_contrast_image():

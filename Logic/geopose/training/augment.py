@@ -14,7 +14,6 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from .. import contract as C
 from ..nets import normalize_minmax
 from . import recipe as R
 
@@ -120,39 +119,10 @@ def map_like(x: Tensor, cranium: Tensor, gen: torch.Generator) -> Tensor:
     return (x + gain * rim + texture).clamp(0, 1)
 
 
-def preprocessed_map_look(x: Tensor, cranium: Tensor, gen: torch.Generator) -> Tensor:
-    """Min-max DRR -> what CONVENTIONS 5 makes of a DSA MAP: the temporal maximum of
-    quantum noise whose sd grows like ``exp(attenuation / 2)`` (a grainy head
-    silhouette), clipped to ``MAP_CLIP_PERCENTILES`` over the columns that hold head,
-    shifted to 0, masked to the cranium silhouette (``cranium`` channel above a drawn
-    fraction of its maximum) and smoothed like the bilateral step."""
-    n, dev = x.shape[0], x.device
-    frames = int(torch.randint(R.RUN_FRAMES[0], R.RUN_FRAMES[1] + 1, (1,), generator=gen, device=dev))
-    # detector noise is correlated over a few model pixels (a 5 px box keeps unit sd); the
-    # bilateral step of the preprocessing removes most of what is left after the maximum
-    noise = torch.stack([5.0 * box_blur(torch.randn(x.shape, generator=gen, device=dev), 5) for _ in range(frames)]).amax(0)
-    spread = _uniform(n, *R.NOISE_SPREAD_KEPT, gen, dev).view(n, 1, 1, 1)
-    noise = noise.mean(dim=(-2, -1), keepdim=True) + spread * (noise - noise.mean(dim=(-2, -1), keepdim=True))
-    run_map = torch.exp(0.5 * R.PEAK_ATTENUATION * x) * noise
-    peak = cranium.flatten(1).amax(1).clamp_min(1e-6).view(n, 1, 1, 1)
-    head = cranium > _uniform(n, *R.HEAD_MASK_LEVEL, gen, dev).view(n, 1, 1, 1) * peak
-    lo_q, hi_q = (p / 100.0 for p in C.MAP_CLIP_PERCENTILES)
-    out = torch.zeros_like(x)
-    for b in range(n):
-        columns = head[b, 0].any(dim=0)
-        if not bool(columns.any()):
-            continue
-        values = run_map[b, 0][:, columns].flatten()
-        lo, hi = torch.quantile(values, torch.tensor([lo_q, hi_q], device=dev, dtype=values.dtype))
-        out[b, 0] = (run_map[b, 0].clamp(lo, hi) - lo) * head[b, 0]
-    return normalize_minmax(box_blur(out))
-
-
 def augment(x: Tensor, gen: torch.Generator, cranium: Tensor | None = None, *, map_like_p: float = R.MAP_LIKE_P) -> Tensor:
     """The full training augmentation of a ``(B, 1, H, W)`` batch -> min-max [0, 1], same shape.
 
-    ``cranium`` (the cranium channel) enables the MAP-likeness step; half the samples
-    then take the preprocessed-MAP look (:func:`preprocessed_map_look`). Does not alter ``x``.
+    ``cranium`` (the cranium channel) enables the MAP-likeness step. Does not alter ``x``.
     """
     if x.ndim != 4 or x.shape[1] != 1:
         raise ValueError(f"augment expects a (B, 1, H, W) batch, got shape {tuple(x.shape)}")
@@ -161,7 +131,6 @@ def augment(x: Tensor, gen: torch.Generator, cranium: Tensor | None = None, *, m
     p = R.AUG_P
     if cranium is not None:
         x = torch.where(_coin(n, map_like_p, gen, dev), map_like(x, cranium, gen), x)
-        x = torch.where(_coin(n, R.PREPROCESSED_LOOK_P, gen, dev), preprocessed_map_look(x, cranium, gen), x)
     # Plasma brightness and contrast (p = 1).
     bright = plasma(n, x.shape[-2:], _uniform(n, *R.PLASMA_ROUGHNESS, gen, dev), gen)
     contrast = plasma(n, x.shape[-2:], _uniform(n, *R.PLASMA_ROUGHNESS, gen, dev), gen)

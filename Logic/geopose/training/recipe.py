@@ -53,14 +53,5 @@ ERASE_FRACTION: Final = (0.02, 0.15)
 COLLIMATION_MAX_PX: Final = 10
 #: MAP-likeness (phantom DRR -> DSA MAP look): probability, skull-rim gain, subtraction-noise sd.
 MAP_LIKE_P: Final = 0.5
-#: Preprocessed-MAP look (what CONVENTIONS 5 makes of a DSA MAP, see ``augment.preprocessed_map_look``):
-#: probability (taken before MAP-likeness), quantum-noise sd behind zero attenuation, the
-#: fraction of the noise maximum's spread that survives the bilateral filter, the peak
-#: log-attenuation the min-max DRR is scaled to, frames per run, and the head-mask level.
-PREPROCESSED_LOOK_P: Final = 0.5
-NOISE_SPREAD_KEPT: Final = (0.1, 0.5)
-PEAK_ATTENUATION: Final = 4.0
-RUN_FRAMES: Final = (3, 26)
-HEAD_MASK_LEVEL: Final = (0.03, 0.15)
 SKULL_RIM_GAIN: Final = (0.3, 1.0)
 SUBTRACTION_NOISE_SD: Final = (0.02, 0.1)
