@@ -21,7 +21,7 @@ def _view(ncc, mpcd, cldice=0.5, rot=1.0, trans=2.0):
 def _case(name, rows, views=((1, 1), (2, 2))):
     curves = {"native + 25 TTO": {v: {"mncc": [0.1, 0.2, 0.3], "mpcd_mm": [9.0, 6.0, 3.0]} for v in ("pa", "lat")}}
     return {
-        "case": name, "rows": rows, "curves": curves, "runtimes_s": {"calibration": 0.5},
+        "case": name, "rows": rows, "curves": curves, "runtimes_s": {"calibration": 0.5, "Init (both views)": 0.25},
         "views": {"pa": {"true_view": views[0][0], "init_view": views[0][1]}, "lat": {"true_view": views[1][0], "init_view": views[1][1]}},
     }
 
@@ -41,7 +41,9 @@ def test_summary_averages_views_within_subjects_then_over_subjects():
     assert target["Init + greedy Refine mean mPCD <= 3 mm"]["measured"] == pytest.approx(5.0)
     assert not target["Init + greedy Refine mean mPCD <= 3 mm"]["met"]
     assert not target["view accuracy 100 %"]["met"]
+    assert s["runtimes_s"]["calibrated Init (calibration + Init)"]["mean"] == pytest.approx(0.75)
     text = markdown(s, "# header")
+    assert "| calibrated Init (calibration + Init) | 0.75 (0.00) | 0.022 |" in text
     assert "| Init + greedy Refine | 2 | 0.750 (0.071)" in text and "| NO |" in text
 
 
