@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import SHARED
 
 from geopose.contract import (
     INIT_TRANSLATION_SCALE_MM,
@@ -46,7 +47,7 @@ from geopose.nets.checkpoint import (
     register,
 )
 
-REFERENCE = Path(__file__).resolve().parents[3] / "shared" / "reference"
+REFERENCE = SHARED / "reference"
 TENSOR_LIST = REFERENCE / "geopose_checkpoint_tensors.json"
 SMALL = BackboneConfig(depth=18, base_width=8)
 BN_STATS = ("running_mean", "running_var", "num_batches_tracked")
