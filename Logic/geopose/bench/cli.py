@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         transfer = None
         if args.headsq:
             transfer = _load_or_run(out / "cases" / "headsq.json", lambda: evaluate_case(headsq_case(args.headsq), init, refine, settings))
-    summary = summarise(cases)
+    summary = summarise(cases, args.iterations)
     header = (
         f"# GeoPose benchmark on {len(cases)} held-out phantom subjects\n\n"
         f"Seeds {seeds[0]}..{seeds[-1]} (disjoint from the training seeds), {args.spacing_mm:g} mm phantoms, "

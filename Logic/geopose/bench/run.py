@@ -15,14 +15,14 @@ import numpy as np
 import torch
 
 from .. import contract as C
-from ..geometry import pose_from_carm_angles, project_points
-from ..metrics import mpcd, ncc, pose_errors
+from ..geometry import pose_from_carm_angles
+from ..metrics import ncc
 from ..nets import InitPredictor, RefinePredictor
 from ..register import (
     RegistrationOptions, calibrate, calibrated_init, greedy_refine, prepare_case, test_time_optimise,
 )
-from ..register.evaluate import evaluate_pose
-from ..register.pipeline import CRANIUM_CHANNEL, VESSEL_CHANNEL, VIEW_KEYS, PreparedCase, silhouette_dice
+from ..register.evaluate import carotid_mpcd, evaluate_pose
+from ..register.pipeline import CRANIUM_CHANNEL, VESSEL_CHANNEL, VIEW_KEYS, PreparedCase, silhouette_dice, synchronize
 from .cases import BenchCase
 
 __all__ = ["BenchSettings", "row_names", "evaluate_case"]
@@ -49,30 +49,20 @@ def row_names(settings: BenchSettings, long: bool = True) -> list[str]:
     return rows
 
 
-def _sync(prep: PreparedCase) -> None:
-    if prep.device.type == "cuda":
-        torch.cuda.synchronize(prep.device)
-
-
 def _metrics(prep: PreparedCase, case: BenchCase, key: str, pose: torch.Tensor) -> dict:
-    """NCC / mNCC / silhouette Dice in the TTO geometry, plus truth metrics."""
+    """NCC and silhouette Dice in the TTO geometry, plus the truth metrics of ``evaluate_pose``
+    (mPCD and clDice only where the case has arteries)."""
     view = prep.views[key]
     pose = pose.to(prep.device, torch.float32)
     with torch.no_grad():
         img = prep.drr(pose, detector=view.tto_detector, channels=(0,))
-    target = torch.as_tensor(view.tto_image, dtype=torch.float32, device=prep.device)[None, None]
-    out = {"ncc": float(ncc(target, img)), "silhouette_dice": silhouette_dice(prep.drr, pose, view)}
-    true_pose = torch.as_tensor(case.true_poses[key], dtype=torch.float64)
+    out = {"ncc": float(ncc(prep.tto_target(key), img)), "silhouette_dice": silhouette_dice(prep.drr, pose, view)}
     run = case.runs[key]
-    if case.carotid_points_mm is not None:
-        out |= evaluate_pose(
-            pose, true_pose, run.detector, run.angles.sod_mm, case.carotid_points_mm,
-            drr=prep.drr, vessel_channel=VESSEL_CHANNEL, mask_detector=view.tto_detector,
-        )
-    else:
-        err = pose_errors(pose.double().cpu().reshape(1, 4, 4), true_pose.reshape(1, 4, 4), sdd_mm=run.detector.sdd_mm)
-        out |= {"rotation_error_deg": float(err.rotation_deg[0]), "translation_error_norm_mm": float(err.translation_norm_mm[0])}
-    return out
+    arteries = case.carotid_points_mm is not None
+    return out | evaluate_pose(
+        pose, torch.as_tensor(case.true_poses[key]), run.detector, run.angles.sod_mm, case.carotid_points_mm,
+        drr=prep.drr if arteries else None, vessel_channel=VESSEL_CHANNEL, mask_detector=view.tto_detector,
+    )
 
 
 def _curve_mpcd(case: BenchCase, key: str, poses: list) -> list[float] | None:
@@ -80,12 +70,8 @@ def _curve_mpcd(case: BenchCase, key: str, poses: list) -> list[float] | None:
     if case.carotid_points_mm is None:
         return None
     run = case.runs[key]
-    pts = torch.as_tensor(case.carotid_points_mm, dtype=torch.float64)
     est = torch.as_tensor(np.asarray(poses), dtype=torch.float64)
-    ref = torch.as_tensor(case.true_poses[key], dtype=torch.float64)[None]
-    p_est, _ = project_points(est, run.detector, pts)
-    p_ref, _ = project_points(ref, run.detector, pts)
-    return [mpcd(p.numpy(), p_ref[0].numpy(), run.detector.spacing_mm, run.angles.sod_mm, run.detector.sdd_mm).detector_mm for p in p_est]
+    return [d.detector_mm for d in carotid_mpcd(est, torch.as_tensor(case.true_poses[key]), run.detector, run.angles.sod_mm, case.carotid_points_mm)]
 
 
 def _tto(prep: PreparedCase, case: BenchCase, starts: dict[str, torch.Tensor], iterations: int) -> tuple[dict, dict, float]:
@@ -94,7 +80,7 @@ def _tto(prep: PreparedCase, case: BenchCase, starts: dict[str, torch.Tensor], i
     result = test_time_optimise(
         prep.drr, [prep.tto_view(k, starts[k]) for k in VIEW_KEYS], iterations, cranium_channel=CRANIUM_CHANNEL
     )
-    _sync(prep)
+    synchronize(prep.device)
     seconds = time.perf_counter() - t0
     curves = {}
     for k in VIEW_KEYS:
@@ -114,22 +100,22 @@ def evaluate_case(
 
     t0 = time.perf_counter()
     cal = calibrate(prep.drr, init)
-    _sync(prep)
+    synchronize(prep.device)
     times["calibration"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     inits = {k: calibrated_init(prep.model_target(k), k == "lat", init, cal) for k in VIEW_KEYS}
-    _sync(prep)
+    synchronize(prep.device)
     times["Init (both views)"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     single = {k: greedy_refine(prep.drr, prep.model_target(k), inits[k].pose_native.float(), inits[k].view, refine, 1) for k in VIEW_KEYS}
-    _sync(prep)
+    synchronize(prep.device)
     times["Refine x1"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     greedy = {
         k: greedy_refine(prep.drr, prep.model_target(k), inits[k].pose_native.float(), inits[k].view, refine, settings.refine_steps)
         for k in VIEW_KEYS
     }
-    _sync(prep)
+    synchronize(prep.device)
     times["greedy Refine"] = time.perf_counter() - t0
 
     dev = prep.device

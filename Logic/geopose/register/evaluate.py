@@ -16,7 +16,7 @@ from ..metrics import cldice, mpcd, pose_errors
 from ..render import DRR
 from .pipeline import VESSEL_CHANNEL, CaseRegistration
 
-__all__ = ["Truth", "load_truth", "evaluate_pose", "truth_metrics", "VESSEL_MASK_FRACTION", "SUCCESS_MPCD_MM"]
+__all__ = ["Truth", "load_truth", "carotid_mpcd", "evaluate_pose", "truth_metrics", "VESSEL_MASK_FRACTION", "SUCCESS_MPCD_MM"]
 
 #: A projected vessel pixel is one above this fraction of the reference image's maximum.
 VESSEL_MASK_FRACTION = 0.05
@@ -56,34 +56,39 @@ def _vessel_mask(drr: DRR, pose: torch.Tensor, detector: Detector, channel: int,
     return (img > threshold).cpu().numpy()
 
 
+def carotid_mpcd(
+    poses: torch.Tensor, true_pose: torch.Tensor, detector: Detector, sod_mm: float, carotid_points_mm: np.ndarray
+) -> list:
+    """mPCD (``geopose.metrics.MPCD`` each) of estimated poses ``(B, 4, 4)`` against ``true_pose``:
+    the carotid points projected with both, the true projection being the reference centreline."""
+    est = torch.as_tensor(poses, dtype=torch.float64).reshape(-1, 4, 4).cpu()
+    ref = torch.as_tensor(true_pose, dtype=torch.float64).reshape(1, 4, 4).cpu()
+    pts = torch.as_tensor(carotid_points_mm, dtype=torch.float64)
+    p_est, _ = project_points(est, detector, pts)
+    p_ref, _ = project_points(ref, detector, pts)
+    return [mpcd(p.numpy(), p_ref[0].numpy(), detector.spacing_mm, sod_mm, detector.sdd_mm) for p in p_est]
+
+
 def evaluate_pose(
     pose: torch.Tensor,
     true_pose: torch.Tensor,
     detector: Detector,
     sod_mm: float,
-    carotid_points_mm: np.ndarray,
+    carotid_points_mm: np.ndarray | None,
     drr: DRR | None = None,
     vessel_channel: int | None = None,
     mask_detector: Detector | None = None,
 ) -> dict:
     """Metrics of one estimated pose ``(1, 4, 4)`` against the truth on ``detector``.
 
-    mPCD projects the carotid points with both poses (the true projection is the
-    reference DSA centreline); clDice compares projected vessel masks rendered on
-    ``mask_detector`` (when a renderer with a vessel channel is given).
+    Pose errors always; mPCD when carotid points are given (:func:`carotid_mpcd`);
+    clDice compares projected vessel masks rendered on ``mask_detector`` (when a
+    renderer with a vessel channel is given).
     """
     est = torch.as_tensor(pose, dtype=torch.float64).reshape(1, 4, 4).cpu()
     ref = torch.as_tensor(true_pose, dtype=torch.float64).reshape(1, 4, 4).cpu()
-    pts = torch.as_tensor(carotid_points_mm, dtype=torch.float64)
-    p_est, _ = project_points(est, detector, pts)
-    p_ref, _ = project_points(ref, detector, pts)
-    d = mpcd(p_est[0].numpy(), p_ref[0].numpy(), detector.spacing_mm, sod_mm, detector.sdd_mm)
     err = pose_errors(est, ref, sdd_mm=detector.sdd_mm)
     out = {
-        "mpcd_px": d.px,
-        "mpcd_mm": d.detector_mm,
-        "mpcd_isocentre_mm": d.isocentre_mm,
-        "success": d.detector_mm < SUCCESS_MPCD_MM,
         "rotation_error_deg": float(err.rotation_deg[0]),
         "euler_error_deg": err.euler_deg[0].tolist(),
         "translation_error_mm": err.translation_mm[0].tolist(),
@@ -91,6 +96,10 @@ def evaluate_pose(
         "source_distance_mm": float(err.source_distance_mm[0]),
         "double_geodesic_mm": float(err.double_geodesic_mm[0]),
     }
+    if carotid_points_mm is not None:
+        d = carotid_mpcd(est, ref, detector, sod_mm, carotid_points_mm)[0]
+        out |= {"mpcd_px": d.px, "mpcd_mm": d.detector_mm, "mpcd_isocentre_mm": d.isocentre_mm,
+                "success": d.detector_mm < SUCCESS_MPCD_MM}
     if drr is not None and vessel_channel is not None:
         det = mask_detector or detector
         with torch.no_grad():

@@ -30,7 +30,7 @@ from .tto import TTOResult, TTOView, test_time_optimise
 
 __all__ = [
     "RegistrationOptions", "ViewOutcome", "CaseRegistration", "PreparedCase", "prepare_case", "register_case",
-    "final_mncc", "resolve_device", "case_labels",
+    "final_mncc", "resolve_device", "case_labels", "synchronize",
 ]
 
 #: Label values of the combined CTA label map handed to the renderer.
@@ -157,10 +157,14 @@ class PreparedCase:
         """View ``key``'s model-geometry MAP ``(1, 1, 256, 256)`` on the case device."""
         return _tensor(self.views[key].model_image, self.device)
 
+    def tto_target(self, key: str) -> torch.Tensor:
+        """View ``key``'s MAP in its TTO geometry ``(1, 1, h, w)`` on the case device."""
+        return _tensor(self.views[key].tto_image, self.device)
+
     def tto_view(self, key: str, pose: torch.Tensor) -> TTOView:
         """View ``key`` set up for :func:`test_time_optimise`, starting from ``pose`` ``(1, 4, 4)``."""
         p = self.views[key]
-        return TTOView(key, _tensor(p.tto_image, self.device), _tensor(p.tto_mask, self.device), p.tto_detector, pose.float())
+        return TTOView(key, self.tto_target(key), _tensor(p.tto_mask, self.device), p.tto_detector, pose.float())
 
 
 def prepare_case(
@@ -223,13 +227,13 @@ def register_case(
         cta, dsa, cranium_mask=cranium_mask, segmentation=segmentation, dsa_masks=dsa_masks, options=options, monitor=monitor
     )
     device, drr, prepared = case.device, case.drr, case.views
-    _sync(device)
+    synchronize(device)
     times["prepare"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     monitor.step("calibration", 0.0, "rendering the PA calibration DRR")
     calibration = calibrate(drr, init)
-    _sync(device)
+    synchronize(device)
     times["calibration"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -237,7 +241,7 @@ def register_case(
     for i, key in enumerate(VIEW_KEYS):
         monitor.step("init", i / 2, f"Init {key.upper()}")
         inits[key] = calibrated_init(case.model_target(key), key == "lat", init, calibration)
-    _sync(device)
+    synchronize(device)
     times["init"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -248,7 +252,7 @@ def register_case(
         )
         for key in VIEW_KEYS
     }
-    _sync(device)
+    synchronize(device)
     times["refine"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -260,7 +264,7 @@ def register_case(
             drr, views, options.iterations, cranium_channel=CRANIUM_CHANNEL, biplanar=options.biplanar, monitor=monitor
         )
         finals = dict(tto_result.poses)
-    _sync(device)
+    synchronize(device)
     times["tto"] = time.perf_counter() - t0
 
     outcomes = {}
@@ -284,6 +288,7 @@ def final_mncc(drr: DRR, pose: torch.Tensor, prepared: PreparedDSA, device: torc
         return float(mncc(_tensor(prepared.tto_image, device), image))
 
 
-def _sync(device: torch.device) -> None:
+def synchronize(device: torch.device) -> None:
+    """Wait for queued CUDA work, so a timing boundary measures it (no-op on the CPU)."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
