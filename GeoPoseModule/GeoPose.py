@@ -7,6 +7,7 @@ Slicer starts even before the Python dependencies are installed.
 """
 
 import importlib.util
+import logging
 import math
 import sys
 from pathlib import Path
@@ -59,6 +60,9 @@ REQUIREMENTS = (
     ("onnx", "onnx>=1.16"),
     ("onnxruntime", "onnxruntime>=1.18"),
 )
+#: Network backends: auto = torch when installed, else onnxruntime with the numpy renderer.
+BACKENDS = ("auto", "torch", "onnxruntime")
+NO_TTO_NOTE = "PyTorch is not installed: Init + Refine ran on onnxruntime; test-time optimisation needs PyTorch and was skipped"
 VIEW_KEYS = ("pa", "lat")
 VIEW_TITLES = {"pa": "PA", "lat": "LAT"}
 #: Geometry override keys (``geopose.dsa.GEOMETRY_KEYS`` names) shown in the panel.
@@ -121,7 +125,7 @@ class GeoPoseParameterNode:
     device: Annotated[str, Choice(["auto", "cpu", "cuda"])] = "auto"
     refineSteps: Annotated[int, WithinRange(0, 20)] = 5
     iterations: Annotated[int, WithinRange(0, 1000)] = 25
-    backend: Annotated[str, Choice(["torch", "onnxruntime"])] = "torch"
+    backend: Annotated[str, Choice(list(BACKENDS))] = "auto"
 
 
 #
@@ -237,7 +241,7 @@ class GeoPoseWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.progressBar.show()
         try:
             with slicer.util.tryWithErrorDisplay(_("Registration failed."), waitCursor=True):
-                if not self.logic.ensureDependencies(askUser=True, torch=True):
+                if not self.logic.ensureDependencies(askUser=True, torch=p.backend == "torch"):
                     return
                 iterations = p.iterations
                 self._outputs = self.logic.register(
@@ -315,7 +319,12 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
 
     @staticmethod
     def torchAvailable() -> bool:
-        return importlib.util.find_spec("torch") is not None
+        """Whether PyTorch imports here (a broken install counts as missing)."""
+        try:
+            import torch  # noqa: F401
+        except (ImportError, OSError):
+            return False
+        return True
 
     def missingRequirements(self) -> list[str]:
         return [req for module, req in REQUIREMENTS if importlib.util.find_spec(module) is None]
@@ -380,10 +389,10 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         its nominal detector plane (C-arm angles about the CTA grid centre)."""
         from geopose import mrml
         from geopose.dsa import read_dsa
-        from geopose.geometry import pose_from_carm_angles
+        from geopose.geometry.numpy_poses import pose_from_carm_angles
 
         run = read_dsa(path, **overrides)
-        pose = pose_from_carm_angles(run.angles).matrix[0].numpy()
+        pose = pose_from_carm_angles(run.angles)
         if ctaNode is not None:
             pose = mrml.volume_from_node(ctaNode).centred_to_ras @ pose
         frameTime = run.frame_time_ms / 1000.0 if run.frame_time_ms else None
@@ -438,7 +447,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         iterations: Optional[int] = None,
         refineSteps: Optional[int] = None,
         device: str = "auto",
-        backend: str = "torch",
+        backend: str = "auto",
         models=None,
         overridesPA: Optional[dict] = None,
         overridesLAT: Optional[dict] = None,
@@ -452,36 +461,56 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         ``geopose register`` writes as result.json)."""
         if cta is None or dsaPA is None or dsaLAT is None:
             raise ValueError("register needs cta, dsaPA and dsaLAT nodes")
-        if not self.torchAvailable():
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        withTorch = self.torchAvailable()
+        if backend == "torch" and not withTorch:
             raise RuntimeError(
-                "GeoPose renders the CTA with PyTorch (calibration, refinement and test-time optimisation), and "
-                "PyTorch is not installed: install the PyTorch extension, or run "
-                "GeoPoseLogic().ensureDependencies(torch=True) from the Python console"
+                "backend 'torch' was asked for but PyTorch is not installed: install the PyTorch extension (or run "
+                "GeoPoseLogic().ensureDependencies(torch=True) from the Python console), or use backend='onnxruntime' "
+                "for Init + Refine without test-time optimisation"
             )
         from geopose import contract as C
         from geopose import mrml
-        from geopose.nets import make_predictors
-        from geopose.register.pipeline import RegistrationOptions, register_case, resolve_device
         from geopose.register.record import build_record
 
         ctaVolume = mrml.volume_from_node(cta)
         runs = {"pa": self.dsaRunFromNode(dsaPA, overridesPA), "lat": self.dsaRunFromNode(dsaLAT, overridesLAT)}
         labels, segments = self.segmentationLabels(segmentation, cta)
         cranium = self.segmentationLabels(craniumMask, cta)[0] if craniumMask is not None else None
-        options = RegistrationOptions(
-            refine_steps=C.GREEDY_MAX_PROPOSALS if refineSteps is None else int(refineSteps),
-            iterations=C.TTO_ITERATIONS if iterations is None else int(iterations),
-            device=device,
-        )
-        dev = resolve_device(device)
-        init, refine = make_predictors(models or self.defaultModelsFolder(), backend=backend, device=dev)
-        result = register_case(
-            ctaVolume, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=labels,
-            options=options, progress=progress, cancel=cancel,
-        )
-        outputs = self.addResultNodes(ctaVolume, runs, result, labels, segments)
+        refineSteps = C.GREEDY_MAX_PROPOSALS if refineSteps is None else int(refineSteps)
+        iterations = C.TTO_ITERATIONS if iterations is None else int(iterations)
+        notes = []
+        if withTorch:
+            from geopose.nets import make_predictors
+            from geopose.register.pipeline import register_case, resolve_device
+            from geopose.register.results import RegistrationOptions
+
+            options = RegistrationOptions(refine_steps=refineSteps, iterations=iterations, device=device)
+            dev = resolve_device(device)
+            init, refine = make_predictors(
+                models or self.defaultModelsFolder(), backend="torch" if backend == "auto" else backend, device=dev
+            )
+            result = register_case(
+                ctaVolume, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=labels,
+                options=options, progress=progress, cancel=cancel,
+            )
+        else:
+            from geopose.register.numpy_pipeline import register_case_numpy
+
+            if iterations > 0:
+                notes.append(NO_TTO_NOTE)
+                logging.warning(NO_TTO_NOTE)
+                if progress is not None:
+                    progress("prepare", 0.0, NO_TTO_NOTE)
+            result = register_case_numpy(
+                ctaVolume, runs, models=models or self.defaultModelsFolder(), cranium_mask=cranium,
+                segmentation=labels, refine_steps=refineSteps, progress=progress, cancel=cancel,
+            )
+        outputs = self.addResultNodes(ctaVolume, runs, result, labels, segments, notes)
         outputs["result"] = result
         outputs["record"] = build_record(result, runs, inputs={"cta": {"node": cta.GetName()}})
+        outputs["record"]["notes"] = notes
         return outputs
 
     def segmentationLabels(self, segmentation, referenceNode):
@@ -494,7 +523,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         colors = mrml.segment_colors(segmentation)
         return labels, {value: (name, colors[name]) for name, value in values.items()}
 
-    def addResultNodes(self, ctaVolume, runs: dict, result, labels=None, segments=None) -> dict:
+    def addResultNodes(self, ctaVolume, runs: dict, result, labels=None, segments=None, notes=()) -> dict:
         """Output nodes for a registration result. Consumes, per view key ``pa``/``lat``:
         ``result.views[key].final_pose`` (1x4x4 camera-to-centred, mm), ``.stage_poses``,
         ``.final_mncc``, ``.silhouette_dice``, ``.quality.flag`` / ``.quality.reasons``,
@@ -530,6 +559,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         for row in rows:
             row.update({f"runtime {stage} (s)": float(t) for stage, t in result.runtimes_s.items()})
             row["device"] = str(result.device)
+            row["notes"] = "; ".join(notes)
         out["table"] = mrml.result_table_node(scene, rows, "GeoPose results")
         return out
 

@@ -14,7 +14,7 @@ from .cta import load_cta, save_volume
 from .phantom.cli import write_phantom
 from .phantom.labels import vessel_mask
 from .register.cli import print_summary, register_files
-from .register.pipeline import RegistrationOptions
+from .register.results import RegistrationOptions
 
 DEMO_SEED = 20260
 

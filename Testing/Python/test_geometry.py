@@ -173,7 +173,7 @@ def test_projection_by_hand_and_backprojection():
 def test_intrinsic_matrix_agrees_with_projection():
     det = Detector(64, 80, (0.7, 0.5), 1100.0, principal_offset_mm=(1.5, -2.0))
     cam = torch.tensor([[12.0, -7.0, 700.0], [-30.0, 25.0, 900.0]], dtype=torch.float64)
-    h = cam @ det.intrinsic_matrix().T
+    h = cam @ torch.as_tensor(det.intrinsic_matrix()).T
     colrow = h[:, :2] / h[:, 2:]
     rc = det.camera_to_pixel(cam)
     assert torch.allclose(colrow.flip(-1), rc)

@@ -145,7 +145,9 @@ def test_register_without_torch_says_what_to_install(module, monkeypatch):
     monkeypatch.setattr(logic, "torchAvailable", lambda: False)
     before = scene.GetNumberOfNodes()
     with pytest.raises(RuntimeError, match="PyTorch is not installed: install the PyTorch extension"):
-        logic.register(cta=cta_node, dsaPA=cta_node, dsaLAT=cta_node)
+        logic.register(cta=cta_node, dsaPA=cta_node, dsaLAT=cta_node, backend="torch")
+    with pytest.raises(ValueError, match="backend must be one of"):
+        logic.register(cta=cta_node, dsaPA=cta_node, dsaLAT=cta_node, backend="tensorflow")
     assert scene.GetNumberOfNodes() == before  # nothing half-made
 
 

@@ -368,7 +368,7 @@ def test_onnx_parity_with_torch(tmp_path):
     assert torch.equal(view_t, view_o)
     assert torch.allclose(logits_t, logits_o, atol=1e-4)
     raw_t, _ = init.forward_all_views(normalize_minmax(image))
-    raw_o = init_onnx.session.run(None, {"image": normalize_minmax(image).numpy()})[0]
+    raw_o = init_onnx.runner.session.run(None, {"image": normalize_minmax(image).numpy()})[0]
     assert torch.allclose(raw_t, torch.from_numpy(raw_o), atol=1e-4)
     # Pose parity: rotation 1e-4, translation scaled by 100 mm -> 1e-2 mm.
     assert torch.allclose(pose_t[:, :3, :3], pose_o[:, :3, :3], atol=1e-4)
@@ -378,7 +378,13 @@ def test_onnx_parity_with_torch(tmp_path):
     D_t = refine.predict_residual(target, render, view)
     D_o = refine_onnx.predict_residual(target, render, view)
     assert torch.allclose(D_t, D_o, atol=1e-4)
-    with pytest.raises(ValueError, match="not a GeoPose-Refine"):
+    # Half-precision weight storage: about half the file, outputs within fp16 rounding.
+    half = export_onnx(refine, image_px=px, weights="float16")
+    full = export_onnx(refine, image_px=px)
+    assert len(half) < 0.6 * len(full)
+    D_h = OnnxRefinePredictor(half).predict_residual(target, render, view)
+    assert torch.allclose(D_t, D_h, atol=2e-2) and not torch.equal(D_h, D_o)
+    with pytest.raises(ValueError, match="not GeoPose-Refine"):
         OnnxRefinePredictor(tmp_path / "init.onnx")
     with pytest.raises(ValueError, match=r"\(B, 1, 64, 64\) batch for this ONNX model"):
         init_onnx.predict(torch.rand(1, 1, 32, 32))

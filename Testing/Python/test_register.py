@@ -33,8 +33,8 @@ from geopose.register import (
     register_case,
     test_time_optimise as run_tto,
 )
+from geopose.register.case import CRANIUM_CHANNEL
 from geopose.register.evaluate import evaluate_pose, load_truth, truth_metrics
-from geopose.register.pipeline import CRANIUM_CHANNEL
 from geopose.register.record import SCHEMA_VERSION, build_record
 from geopose.register.report import write_overlays
 from geopose.render import DRR

@@ -16,7 +16,7 @@ import torch.multiprocessing as mp
 from geopose.contract import VIEW_LAT_MINUS, VIEW_LAT_PLUS, VIEW_PA
 from geopose.geometry.rigid import axis_angle_to_matrix
 from geopose.metrics import double_geodesic_mm
-from geopose.nets import decode_init_pose, load_model, read_model_header, residual_from_raw
+from geopose.nets import decode_init_pose, load_model, make_predictors, read_model_header, residual_from_raw
 from geopose.phantom import labels as L
 from geopose.phantom import make_subject
 from geopose.training import recipe as R
@@ -244,17 +244,28 @@ def test_manifest_verification_detects_corruption(tiny_population, tmp_path):
         verify_manifest(models)
     with pytest.raises(FileNotFoundError, match="manifest.json"):
         verify_manifest(tmp_path)
+    with pytest.raises(FileNotFoundError, match="no ONNX file for the init network"):
+        verify_manifest(models, fmt="onnx")
 
 
 def test_shipped_models_verify_and_load():
     files = verify_manifest(MODELS)
-    assert set(files) == {"init", "refine"}
+    graphs = verify_manifest(MODELS, fmt="onnx")
+    assert set(files) == set(graphs) == {"init", "refine"}
     manifest = json.loads((MODELS / "manifest.json").read_text())
-    assert sum(e["bytes"] for e in manifest["models"].values()) <= 40 * 1024 * 1024
+    assert sum(e["bytes"] + e["onnx"]["bytes"] for e in manifest["models"].values()) <= 40 * 1024 * 1024
+    image = torch.rand(2, 1, 256, 256, generator=torch.Generator().manual_seed(0))
     for kind, path in files.items():
         net = load_model(path)
         assert net.config.kind == kind and read_model_header(path)["storage_dtype"] == "float16"
         assert manifest["models"][kind]["training"]["config"]["seed"] is not None
+    # The shipped ONNX graphs compute what the torch files do.
+    init_t, refine_t = make_predictors(MODELS, "torch")
+    init_o, refine_o = make_predictors(MODELS, "onnxruntime")
+    with torch.no_grad():
+        assert torch.allclose(init_t.predict(image)[2], init_o.predict(image)[2], atol=1e-2)
+        residual_t = refine_t.predict_residual(image, image.flip(-1), 1)
+    assert torch.allclose(residual_t, refine_o.predict_residual(image, image.flip(-1), 1), atol=1e-2)
     assert "view_accuracy_with_metadata" in manifest["validation"]
 
 

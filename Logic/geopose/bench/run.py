@@ -21,8 +21,9 @@ from ..nets import InitPredictor, RefinePredictor
 from ..register import (
     RegistrationOptions, calibrate, calibrated_init, greedy_refine, prepare_case, test_time_optimise,
 )
+from ..register.case import CRANIUM_CHANNEL, VESSEL_CHANNEL, VIEW_KEYS
 from ..register.evaluate import carotid_mpcd, evaluate_pose
-from ..register.pipeline import CRANIUM_CHANNEL, VESSEL_CHANNEL, VIEW_KEYS, PreparedCase, silhouette_dice, synchronize
+from ..register.pipeline import PreparedCase, silhouette_dice, synchronize
 from .cases import BenchCase
 
 __all__ = ["BenchSettings", "row_names", "evaluate_case"]

@@ -12,11 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import SimpleITK as sitk
-import torch
-import torch.nn.functional as F
 
 from .. import contract as C
-from ..geometry.carm import Detector
+from ..geometry.detector import Detector
 from ..nets.preprocess import normalize_minmax
 from .run import DSAInputError, DSARun
 
@@ -95,16 +93,35 @@ def clip_intensities(
     return clipped - clipped.min()
 
 
-def _gaussian_blur(x: torch.Tensor, sigma_px: tuple[float, float]) -> torch.Tensor:
-    for dim, sigma in ((2, sigma_px[0]), (3, sigma_px[1])):
+def _gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
+    """Separable Gaussian (radius ``ceil(3 sigma)``, edge values repeated) along rows then columns."""
+    for axis, sigma in enumerate(sigma_px):
         if sigma <= 0:
             continue
         radius = max(1, int(np.ceil(3 * sigma)))
-        k = torch.exp(-0.5 * (torch.arange(-radius, radius + 1, dtype=x.dtype) / sigma) ** 2)
-        k = (k / k.sum()).view(1, 1, -1, 1) if dim == 2 else (k / k.sum()).view(1, 1, 1, -1)
-        pad = (0, 0, radius, radius) if dim == 2 else (radius, radius, 0, 0)
-        x = F.conv2d(F.pad(x, pad, mode="replicate"), k)
-    return x
+        k = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+        k /= k.sum()
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (radius, radius)
+        padded = np.pad(image, pad, mode="edge")
+        n = image.shape[axis]
+        image = sum(w * np.take(padded, np.arange(i, i + n), axis=axis) for i, w in enumerate(k))
+    return image
+
+
+def _bilinear(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image`` at fractional pixel ``(rows, cols)``; outside the image it is 0."""
+    h, w = image.shape
+    r0, c0 = np.floor(rows), np.floor(cols)
+    fr, fc = rows - r0, cols - c0
+    r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
+    out = np.zeros(rows.shape, dtype=np.float64)
+    for dr, wr in ((0, 1.0 - fr), (1, fr)):
+        for dc, wc in ((0, 1.0 - fc), (1, fc)):
+            r, c = r0 + dr, c0 + dc
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            out += np.where(inside, image[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], 0.0) * wr * wc
+    return out
 
 
 def resample_to_detector(image: np.ndarray, source: Detector, target: Detector) -> np.ndarray:
@@ -121,20 +138,13 @@ def resample_to_detector(image: np.ndarray, source: Detector, target: Detector) 
     image = np.asarray(image, dtype=np.float32)
     if image.shape != source.shape:
         raise DSAInputError(f"image {image.shape} does not match the source detector {source.shape}")
-    rows = torch.arange(target.rows, dtype=torch.float64)
-    cols = torch.arange(target.cols, dtype=torch.float64)
-    rc = torch.stack(torch.meshgrid(rows, cols, indexing="ij"), dim=-1)
-    src_rc = source.camera_to_pixel(target.pixel_to_camera(rc))
+    src_rc = source.camera_to_pixel(target.camera_points())
     ratio = (  # target pixel size projected onto the source plane, in source pixels
         target.spacing_mm[0] * source.sdd_mm / (target.sdd_mm * source.spacing_mm[0]),
         target.spacing_mm[1] * source.sdd_mm / (target.sdd_mm * source.spacing_mm[1]),
     )
-    x = torch.from_numpy(image)[None, None].double()
-    x = _gaussian_blur(x, tuple(0.5 * r if r > 1 else 0.0 for r in ratio))
-    h, w = source.shape
-    grid = torch.stack((src_rc[..., 1] / max(w - 1, 1) * 2 - 1, src_rc[..., 0] / max(h - 1, 1) * 2 - 1), dim=-1)
-    out = F.grid_sample(x, grid[None], mode="bilinear", padding_mode="zeros", align_corners=True)
-    return out[0, 0].float().numpy()
+    smooth = _gaussian_blur(image.astype(np.float64), tuple(0.5 * r if r > 1 else 0.0 for r in ratio))
+    return _bilinear(smooth, src_rc[..., 0], src_rc[..., 1]).astype(np.float32)
 
 
 def resample_to_model_sdd(image: np.ndarray, detector: Detector, model: Detector | None = None) -> np.ndarray:
@@ -171,8 +181,7 @@ def bilateral(
 
 def minmax(image: np.ndarray) -> np.ndarray:
     """Min-max to [0, 1] through the networks' :func:`geopose.nets.normalize_minmax`."""
-    t = torch.from_numpy(np.asarray(image, dtype=np.float32))[None, None]
-    return normalize_minmax(t)[0, 0].numpy()
+    return normalize_minmax(np.asarray(image, dtype=np.float32)[None, None])[0, 0]
 
 
 @dataclass

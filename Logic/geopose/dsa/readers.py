@@ -34,7 +34,7 @@ import SimpleITK as sitk
 from pydicom.errors import InvalidDicomError
 
 from ..cta.io import file_sha256
-from ..geometry.carm import CArmAngles, Detector
+from ..geometry.detector import CArmAngles, Detector
 from .run import GEOMETRY_KEYS, GEOMETRY_SOURCES, REQUIRED_GEOMETRY_KEYS, DSAInputError, DSARun, cli_option
 
 __all__ = ["read_dsa", "sidecar_path", "NIFTI_EXTENSIONS", "SIDECAR_KEYS"]

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import contract as C
-from ..geometry.carm import CArmAngles, Detector, view_from_primary_angle
+from ..geometry.detector import CArmAngles, Detector, view_from_primary_angle
 
 __all__ = [
     "DSAInputError",

@@ -12,12 +12,10 @@ from typing import Mapping, Sequence
 
 import numpy as np
 import slicer
-import torch
 import vtk
 
-from ..geometry.carm import AP_REORIENT, Detector
-from ..geometry.rigid import RigidTransform
-from ..render import DRR
+from ..geometry.detector import AP_REORIENT, Detector
+from ..render.numpy_drr import NumpyDRR
 from ..volume import Volume
 from .plane import detector_ijk_to_ras, detector_index_to_camera
 from .scene import matrix_from_vtk, matrix_to_vtk
@@ -37,8 +35,6 @@ __all__ = [
 
 #: A pixel belongs to a projected segment when its ray runs this many voxel sizes through it.
 PROJECTION_THRESHOLD_VOXELS = 0.25
-#: Upper bound on ray samples held in memory at once while projecting segments.
-_MAX_SAMPLES_PER_TILE = 1 << 23
 
 
 def pose_transform_node(scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, name: str) -> "slicer.vtkMRMLLinearTransformNode":
@@ -58,7 +54,7 @@ def transform_matrix(node: "slicer.vtkMRMLTransformNode") -> np.ndarray:
 def camera_to_ras_points(pose_ras: np.ndarray, detector: Detector) -> dict[str, np.ndarray]:
     """RAS positions (mm) of the source, detector centre and the four detector corners
     (pixel-centre corners, rows 0/H-1 x cols 0/W-1), and the image-up direction (row 0 side)."""
-    m = np.asarray(pose_ras, dtype=float) @ AP_REORIENT.numpy()
+    m = np.asarray(pose_ras, dtype=float) @ AP_REORIENT
     idx = detector_index_to_camera(detector)
     h, w = detector.rows - 1, detector.cols - 1
     corners_ij = np.array([[0, 0, 0, 1], [w, 0, 0, 1], [w, h, 0, 1], [0, h, 0, 1]], dtype=float)
@@ -102,29 +98,20 @@ def frustum_model_node(
     return node
 
 
-def _row_tile(detector: Detector, r0: int, rows: int) -> Detector:
-    """The sub-detector made of rows ``r0 .. r0+rows-1`` (same pixel positions)."""
-    dy = detector.spacing_mm[0]
-    x0, y0 = detector.principal_offset_mm
-    shift = ((detector.rows - 1) / 2 - r0 - (rows - 1) / 2) * dy
-    return Detector(rows, detector.cols, detector.spacing_mm, detector.sdd_mm, (x0, y0 + shift))
-
-
 def project_labels(
     labels: Volume, values: Sequence[int], pose_centred: np.ndarray, detector: Detector, threshold_mm: float | None = None
 ) -> np.ndarray:
     """Binary projections ``(len(values), H, W)`` of label-map regions onto the detector.
 
     ``labels`` lies on the CTA grid (its centred frame is the poses' world frame). Each
-    region's indicator is ray-traced with the DRR renderer; a pixel is set when its ray
+    region's indicator is ray-traced with the (numpy) DRR renderer; a pixel is set when its ray
     runs more than ``threshold_mm`` (default a quarter of the smallest voxel size) inside.
     """
     values = list(values)
-    out = np.zeros((len(values), detector.rows, detector.cols), dtype=bool)
     masks = np.stack([labels.array == v for v in values]) if values else np.zeros((0,) + labels.array.shape, bool)
     present = masks.any(axis=0)
     if not present.any():
-        return out
+        return np.zeros((len(values), detector.rows, detector.cols), dtype=bool)
     nz = np.nonzero(present)
     lo = [max(int(a.min()) - 1, 0) for a in nz]
     hi = [min(int(a.max()) + 2, n) for a, n in zip(nz, present.shape)]
@@ -134,17 +121,7 @@ def project_labels(
     ijk_to_world = labels.ijk_to_centred @ shift
     spacing = np.asarray(labels.spacing_mm)
     threshold = PROJECTION_THRESHOLD_VOXELS * spacing.min() if threshold_mm is None else float(threshold_mm)
-    drr = DRR(torch.from_numpy(crop), ijk_to_world, detector)
-    diag_mm = float(np.linalg.norm(np.asarray(crop.shape[:0:-1]) * spacing))
-    samples_per_ray = int(math.ceil(diag_mm / drr.step_mm)) + 1
-    tile = max(1, _MAX_SAMPLES_PER_TILE // (detector.cols * samples_per_ray * max(len(values), 1)))
-    pose = RigidTransform(torch.as_tensor(np.asarray(pose_centred, dtype=np.float64)).reshape(1, 4, 4))
-    with torch.no_grad():
-        for r0 in range(0, detector.rows, tile):
-            rows = min(tile, detector.rows - r0)
-            img = drr(pose, _row_tile(detector, r0, rows))[0].numpy()
-            out[:, r0:r0 + rows] = img > threshold
-    return out
+    return NumpyDRR(crop, ijk_to_world, detector)(pose_centred) > threshold
 
 
 def projected_segmentation_node(

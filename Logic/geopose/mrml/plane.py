@@ -18,7 +18,7 @@ from dataclasses import asdict
 import numpy as np
 import slicer
 
-from ..geometry.carm import AP_REORIENT, CArmAngles, Detector
+from ..geometry.detector import AP_REORIENT, CArmAngles, Detector
 from .scene import matrix_to_vtk, sequences_logic
 from .volumes import image_data_from_array
 
@@ -55,7 +55,7 @@ def detector_ijk_to_ras(detector: Detector, pose_ras: np.ndarray) -> np.ndarray:
     pose_ras = np.asarray(pose_ras, dtype=float)
     if pose_ras.shape != (4, 4):
         raise ValueError(f"a pose is a 4x4 camera-to-RAS matrix, got shape {pose_ras.shape}")
-    return pose_ras @ AP_REORIENT.numpy() @ detector_index_to_camera(detector)
+    return pose_ras @ AP_REORIENT @ detector_index_to_camera(detector)
 
 
 def _check_image(image: np.ndarray, detector: Detector) -> np.ndarray:

@@ -15,15 +15,12 @@ from typing import Any
 
 import torch
 
-from ..checksums import file_sha256
+from .manifest import MANIFEST_NAME, verify_manifest
 from .models import InitNet, NetConfig, RefineNet, build_model
 
 MODEL_FORMAT = "geopose-model"
 MODEL_FORMAT_VERSION = 1
 MODEL_SUFFIX = ".pt"
-#: The shipped models' manifest (file names, SHA-256, architecture, training record).
-MANIFEST_NAME = "manifest.json"
-MANIFEST_SCHEMA = 1
 #: Storage dtypes a model file may use for its floating-point tensors.
 STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 
@@ -131,32 +128,6 @@ def find_model_files(directory: str | os.PathLike) -> dict[str, Path]:
             f"{directory} has no {' or '.join(missing)} model file (*{MODEL_SUFFIX}); "
             "import the published checkpoints with `geopose import-checkpoint` or train one"
         )
-    return found
-
-
-def verify_manifest(models_dir: str | os.PathLike) -> dict[str, Path]:
-    """Check every model file listed in ``models_dir/manifest.json`` (existence, size, SHA-256).
-
-    Returns kind -> path. Raises FileNotFoundError / ValueError naming the file and the remedy.
-    """
-    models_dir = Path(models_dir)
-    path = models_dir / MANIFEST_NAME
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} does not exist; ship models with `geopose train ship` or reinstall GeoPose")
-    try:
-        manifest = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path} is not valid JSON ({exc}); restore it from the GeoPose release") from None
-    if manifest.get("schema_version") != MANIFEST_SCHEMA or not isinstance(manifest.get("models"), dict):
-        raise ValueError(f"{path} is not a schema-{MANIFEST_SCHEMA} GeoPose model manifest; restore it from the release")
-    found = {}
-    for kind, entry in manifest["models"].items():
-        file = models_dir / entry["file"]
-        if not file.is_file():
-            raise FileNotFoundError(f"model file {file} listed in {path.name} is missing; restore it from the release")
-        if file.stat().st_size != entry["bytes"] or file_sha256(file) != entry["sha256"]:
-            raise ValueError(f"{file} does not match its SHA-256 in {path.name} (corrupted or replaced); restore it from the release")
-        found[kind] = file
     return found
 
 

@@ -7,7 +7,9 @@ Graphs (float32, dynamic batch, fixed image size given at export):
   run outside the graph (:mod:`.decoding`), identically for both backends.
 - Refine: ``target, render (B,1,H,W)`` and ``view (B,) int64`` -> ``raw_residual (B,6)``.
 
-Inputs are expected min-max normalised; the runners apply :func:`normalize_minmax`.
+Inputs are expected min-max normalised; the runners (``onnx_runtime.py``) apply
+:func:`normalize_minmax`. ``weights="float16"`` stores the weights in half precision
+with a Cast to float32 in front of their users (half the file; the arithmetic stays float32).
 """
 
 from __future__ import annotations
@@ -17,16 +19,17 @@ import os
 import warnings
 from pathlib import Path
 
+import numpy as np
 import onnx
 import torch
 from torch import Tensor, nn
 
 from ..contract import MODEL_DETECTOR_PX
 from .models import InitNet, RefineNet
+from .onnx_runtime import KIND_METADATA_KEY
 
 ONNX_OPSET = 17
-#: Key of the ONNX metadata entry that records the network kind.
-KIND_METADATA_KEY = "geopose_kind"
+WEIGHT_DTYPES = ("float32", "float16")
 
 
 class _InitGraph(nn.Module):
@@ -38,12 +41,35 @@ class _InitGraph(nn.Module):
         return self.model.forward_all_views(image)
 
 
+def _store_half(graph: onnx.GraphProto) -> None:
+    """Float32 weights -> float16 initializers, each cast back to float32 under its old name."""
+    casts, kept = [], []
+    for init in graph.initializer:
+        if init.data_type != onnx.TensorProto.FLOAT:
+            kept.append(init)
+            continue
+        half = onnx.numpy_helper.from_array(onnx.numpy_helper.to_array(init).astype(np.float16), f"{init.name}__float16")
+        kept.append(half)
+        casts.append(onnx.helper.make_node("Cast", [half.name], [init.name], to=onnx.TensorProto.FLOAT))
+    nodes = casts + list(graph.node)
+    del graph.initializer[:], graph.node[:]
+    graph.initializer.extend(kept)
+    graph.node.extend(nodes)
+
+
 def export_onnx(
-    module: InitNet | RefineNet, path: str | os.PathLike | None = None, *, image_px: int = MODEL_DETECTOR_PX
+    module: InitNet | RefineNet,
+    path: str | os.PathLike | None = None,
+    *,
+    image_px: int = MODEL_DETECTOR_PX,
+    weights: str = "float32",
 ) -> bytes | Path:
-    """Export ``module`` (float32, eval mode) for ``image_px`` square images; to ``path``, or bytes if ``None``."""
+    """Export ``module`` (eval mode) for ``image_px`` square images, weights stored as
+    ``weights`` (``float32`` or ``float16``); to ``path``, or bytes if ``None``."""
     if not isinstance(module, (InitNet, RefineNet)):
         raise TypeError(f"export_onnx takes an InitNet or RefineNet, got {type(module).__name__}")
+    if weights not in WEIGHT_DTYPES:
+        raise ValueError(f"weights must be one of {WEIGHT_DTYPES}, got {weights!r}")
     was_training = module.training
     module = module.eval()
     device = next(module.parameters()).device
@@ -71,6 +97,8 @@ def export_onnx(
         )
     module.train(was_training)
     proto = onnx.load_from_string(buffer.getvalue())
+    if weights == "float16":
+        _store_half(proto.graph)
     entry = proto.metadata_props.add()
     entry.key, entry.value = KIND_METADATA_KEY, module.config.kind
     data = proto.SerializeToString()
@@ -80,12 +108,3 @@ def export_onnx(
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(data)
     return path
-
-
-def onnx_kind(model: bytes | str | os.PathLike) -> str:
-    """The network kind (``init``/``refine``) recorded by :func:`export_onnx`."""
-    proto = onnx.load_from_string(model) if isinstance(model, bytes) else onnx.load(os.fspath(model))
-    for entry in proto.metadata_props:
-        if entry.key == KIND_METADATA_KEY:
-            return entry.value
-    raise ValueError(f"the ONNX model has no '{KIND_METADATA_KEY}' entry; export it with geopose.nets.export_onnx")

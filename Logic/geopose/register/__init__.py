@@ -1,19 +1,23 @@
 """GeoPose registration stages: calibration, calibrated Init, gated refinement,
-test-time optimisation, the whole-case pipeline, its result record and pictures."""
+test-time optimisation, the whole-case pipeline (torch, or numpy + onnxruntime),
+its result record and pictures."""
 
-from .calibration import Calibration, InitEstimate, calibrate, calibrated_init, render_model_view
-from .pipeline import (
-    CaseRegistration, PreparedCase, RegistrationOptions, ViewOutcome, case_labels, prepare_case, register_case,
-    resolve_device,
+from ..lazy import lazy_exports
+
+__all__, __getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "calibration": ("calibrate", "calibrated_init", "render_model_view"),
+        "case": ("VIEW_KEYS", "case_labels", "prepare_views"),
+        "numpy_pipeline": ("register_case_numpy",),
+        "pipeline": ("PreparedCase", "prepare_case", "register_case", "resolve_device"),
+        "progress": ("ConsoleProgress", "Monitor", "RegistrationCancelled"),
+        "quality": ("Quality", "assess"),
+        "refine": ("greedy_refine",),
+        "results": (
+            "Calibration", "CaseRegistration", "InitEstimate", "Proposal", "RefineTrace", "RegistrationOptions",
+            "ViewOutcome",
+        ),
+        "tto": ("TTOResult", "TTOView", "biplanar_penalty", "test_time_optimise"),
+    },
 )
-from .progress import ConsoleProgress, Monitor, RegistrationCancelled
-from .quality import Quality, assess
-from .refine import Proposal, RefineTrace, greedy_refine
-from .tto import TTOResult, TTOView, biplanar_penalty, test_time_optimise
-
-__all__ = [
-    "Calibration", "CaseRegistration", "ConsoleProgress", "InitEstimate", "Monitor", "PreparedCase", "Proposal", "Quality",
-    "RefineTrace", "RegistrationCancelled", "RegistrationOptions", "TTOResult", "TTOView", "ViewOutcome", "assess",
-    "biplanar_penalty", "calibrate", "calibrated_init", "case_labels", "greedy_refine", "prepare_case", "register_case",
-    "render_model_view", "resolve_device", "test_time_optimise",
-]

@@ -7,8 +7,6 @@ frame: ``T_native = A @ T_pred``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 
@@ -16,31 +14,9 @@ from .. import contract as C
 from ..geometry import Detector, RigidTransform, isopose
 from ..nets import InitPredictor, normalize_minmax
 from ..render import DRR
+from .results import Calibration, InitEstimate
 
-__all__ = ["Calibration", "InitEstimate", "calibrate", "calibrated_init"]
-
-
-@dataclass
-class Calibration:
-    """``frame_transfer`` ``(1, 4, 4)``: canonical -> native (centred frames, mm)."""
-
-    calibration_pose: Tensor
-    predicted_canonical: Tensor
-    frame_transfer: Tensor
-    image: Tensor
-
-    def to_native(self, pose_canonical: Tensor) -> Tensor:
-        return self.frame_transfer @ pose_canonical
-
-
-@dataclass
-class InitEstimate:
-    """Calibrated Init output for one DSA view."""
-
-    pose_native: Tensor
-    pose_canonical: Tensor
-    view: int
-    logits: Tensor
+__all__ = ["calibrate", "calibrated_init", "render_model_view"]
 
 
 def render_model_view(drr: DRR, pose: Tensor) -> Tensor:

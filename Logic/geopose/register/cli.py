@@ -14,7 +14,8 @@ from ..nets.model_io import model_files, read_model_header
 from ..resources import default_models_dir
 from .. import contract as C
 from .evaluate import load_truth, truth_metrics
-from .pipeline import RegistrationOptions, register_case, resolve_device
+from .pipeline import register_case, resolve_device
+from .results import RegistrationOptions
 from .progress import ConsoleProgress
 from .record import build_record, write_record
 from .report import write_overlays

@@ -14,7 +14,8 @@ from ..dsa import DSARun
 from ..geometry import Detector, project_points
 from ..metrics import cldice, mpcd, pose_errors
 from ..render import DRR
-from .pipeline import VESSEL_CHANNEL, CaseRegistration
+from .case import VESSEL_CHANNEL
+from .results import CaseRegistration
 
 __all__ = ["Truth", "load_truth", "carotid_mpcd", "evaluate_pose", "truth_metrics", "VESSEL_MASK_FRACTION", "SUCCESS_MPCD_MM"]
 

@@ -8,87 +8,27 @@ stage it calls is usable on its own (``calibration``, ``refine``, ``tto``).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np
 import torch
 
-from .. import contract as C
-from ..cta import cranium_mask_from_cta, vessel_mask_from_cta
-from ..dsa import LAT_ROLE, PA_ROLE, DSARun, PreparedDSA, preprocess_dsa
+from ..dsa import DSARun, PreparedDSA
 from ..geometry import Detector, RigidTransform, rotation_angle_rad
 from ..metrics import mncc
 from ..nets import InitPredictor, RefinePredictor
 from ..render import DRR
 from ..volume import Volume
-from .calibration import Calibration, InitEstimate, calibrate, calibrated_init
+from .calibration import calibrate, calibrated_init
+from .case import CRANIUM_CHANNEL, LABEL_GROUPS, TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, case_labels, prepare_views
 from .progress import CancelCheck, Monitor, ProgressCallback
-from .quality import Quality, assess
-from .refine import RefineTrace, greedy_refine
-from .tto import TTOResult, TTOView, test_time_optimise
+from .quality import assess
+from .refine import greedy_refine
+from .results import CaseRegistration, RegistrationOptions, ViewOutcome
+from .tto import TTOView, test_time_optimise
 
-__all__ = [
-    "RegistrationOptions", "ViewOutcome", "CaseRegistration", "PreparedCase", "prepare_case", "register_case",
-    "final_mncc", "resolve_device", "case_labels", "synchronize",
-]
-
-#: Label values of the combined CTA label map handed to the renderer.
-CRANIUM_BIT = 1
-VESSEL_BIT = 2
-LABEL_GROUPS = {"cranium": [CRANIUM_BIT, CRANIUM_BIT | VESSEL_BIT], "vessels": [VESSEL_BIT, CRANIUM_BIT | VESSEL_BIT]}
-CRANIUM_CHANNEL = 1
-VESSEL_CHANNEL = 2
-VIEW_KEYS = ("pa", "lat")
-#: Default TTO image size (pixels along the detector's longer side): the GPU affords
-#: the model resolution; on a CPU half of it keeps a registration under a minute.
-TTO_PX_CUDA = 256
-TTO_PX_CPU = 128
-
-
-@dataclass
-class RegistrationOptions:
-    """Knobs of :func:`register_case` (defaults follow the paper)."""
-
-    refine_steps: int = C.GREEDY_MAX_PROPOSALS
-    iterations: int = C.TTO_ITERATIONS
-    tto_px: int | None = None  # None: TTO_PX_CUDA on a GPU, TTO_PX_CPU on a CPU
-    biplanar: bool = False
-    device: str = "auto"
-
-
-@dataclass
-class ViewOutcome:
-    """Everything one view went through; poses ``(1, 4, 4)`` camera-to-centred-native (mm)."""
-
-    key: str
-    prepared: PreparedDSA
-    init: InitEstimate
-    refine: RefineTrace
-    final_pose: torch.Tensor
-    final_mncc: float
-    silhouette_dice: float
-    quality: Quality
-
-    @property
-    def stage_poses(self) -> dict[str, torch.Tensor]:
-        return {"init": self.init.pose_native, "refine": self.refine.pose, "final": self.final_pose}
-
-
-@dataclass
-class CaseRegistration:
-    """The in-memory result of :func:`register_case` (``record.py`` turns it into JSON)."""
-
-    cta: Volume
-    labels: Volume
-    labels_source: dict
-    calibration: Calibration
-    views: dict[str, ViewOutcome]
-    tto: TTOResult | None
-    runtimes_s: dict[str, float]
-    device: str
-    options: RegistrationOptions
-    drr: DRR = field(repr=False)
+__all__ = ["PreparedCase", "prepare_case", "register_case", "final_mncc", "resolve_device", "synchronize"]
 
 
 def resolve_device(device: str) -> torch.device:
@@ -100,33 +40,6 @@ def resolve_device(device: str) -> torch.device:
     if device not in ("cpu",) and not device.startswith("cuda"):
         raise ValueError(f"device must be auto, cpu or cuda, got {device!r}")
     return torch.device(device)
-
-
-def case_labels(cta: Volume, cranium_mask: Volume | None, segmentation: Volume | None) -> tuple[Volume, dict]:
-    """Combined label map (cranium bit 1, vessel bit 2) on the CTA grid, and where each part came from.
-
-    Missing parts are computed from the CTA (``geopose.cta.masks``); the vessel
-    part is then a contrast-threshold approximation and the record says so.
-    """
-    source = {}
-    for name, vol in (("cranium mask", cranium_mask), ("segmentation", segmentation)):
-        if vol is not None and vol.array.shape != cta.array.shape:
-            raise ValueError(
-                f"the {name} grid {vol.shape_ijk} differs from the CTA grid {cta.shape_ijk}: resample it onto the CTA first"
-            )
-    if cranium_mask is None:
-        cranium_mask = cranium_mask_from_cta(cta)
-        source["cranium"] = "computed from the CTA (bone threshold, largest component, filled)"
-    else:
-        source["cranium"] = "given"
-    if segmentation is None:
-        vessels = vessel_mask_from_cta(cta, cranium_mask).array > 0
-        source["vessels"] = "contrast-threshold vessel mask inside the cranium (no segmentation given)"
-    else:
-        vessels = segmentation.array > 0
-        source["vessels"] = "given segmentation"
-    combined = (cranium_mask.array > 0).astype(np.uint8) * CRANIUM_BIT + vessels.astype(np.uint8) * VESSEL_BIT
-    return cta.like(combined, role="geopose case labels"), source
 
 
 def _tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -186,17 +99,8 @@ def prepare_case(
     monitor.step("prepare", 0.0, "CTA masks")
     labels, labels_source = case_labels(cta, cranium_mask, segmentation)
     drr = DRR.from_volume(cta, Detector.model(), labels=labels, label_groups=LABEL_GROUPS, device=device)
-    prepared: dict[str, PreparedDSA] = {}
-    for i, key in enumerate(VIEW_KEYS):
-        monitor.step("prepare", (i + 1) / 3, f"DSA {key.upper()}")
-        kwargs = {"mask": dsa_masks[key]} if dsa_masks and key in dsa_masks else {}
-        kwargs["tto_px"] = options.tto_px or (TTO_PX_CUDA if device.type == "cuda" else TTO_PX_CPU)
-        prepared[key] = preprocess_dsa(dsa[key], **kwargs)
-    if prepared["pa"].view_role != PA_ROLE or prepared["lat"].view_role != LAT_ROLE:
-        raise ValueError(
-            f"the 'pa' run looks {prepared['pa'].view_role} and the 'lat' run {prepared['lat'].view_role} by their "
-            "primary angles: swap them, or override the angle (primary_deg) if the tags are wrong"
-        )
+    tto_px = options.tto_px or (TTO_PX_CUDA if device.type == "cuda" else TTO_PX_CPU)
+    prepared = prepare_views(dsa, tto_px=tto_px, dsa_masks=dsa_masks, monitor=monitor)
     return PreparedCase(labels, labels_source, drr, prepared, device)
 
 

@@ -11,24 +11,30 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from .. import __version__
 from .. import contract as C
 from ..dsa import DSARun
-from ..geometry import carm_angles_from_pose, params_from_pose
+from ..geometry.detector import carm_angles_from_params
 from ..geometry.frames import pose_to_patient
-from .pipeline import CaseRegistration, ViewOutcome
+from ..geometry.numpy_poses import params_from_pose
+from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
 SCHEMA_VERSION = 1
 
-__all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "write_record", "library_versions"]
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "as_numpy", "build_record", "write_record", "library_versions"]
 
 
-def _m(t: torch.Tensor | np.ndarray) -> list:
-    a = t.detach().cpu().double().numpy() if isinstance(t, torch.Tensor) else np.asarray(t, float)
-    return a.reshape(4, 4).tolist()
+def as_numpy(x: Any) -> np.ndarray:
+    """A numpy array (float64 for floats) from a numpy array or a torch tensor on any device."""
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64) if np.asarray(x).dtype.kind == "f" else np.asarray(x)
+
+
+def _m(t: Any) -> list:
+    return as_numpy(t).reshape(4, 4).tolist()
 
 
 def library_versions() -> dict[str, str]:
@@ -36,10 +42,16 @@ def library_versions() -> dict[str, str]:
     import onnxruntime
     import pydicom
 
+    try:
+        import torch
+
+        torch_version = torch.__version__
+    except ImportError:
+        torch_version = "not installed"
     return {
         "geopose": __version__,
         "python": platform.python_version(),
-        "torch": torch.__version__,
+        "torch": torch_version,
         "numpy": np.__version__,
         "SimpleITK": SimpleITK.Version_VersionString(),
         "onnxruntime": onnxruntime.__version__,
@@ -47,8 +59,8 @@ def library_versions() -> dict[str, str]:
     }
 
 
-def _pose_entry(case: CaseRegistration, pose: torch.Tensor) -> dict:
-    centred = pose.detach().cpu().double().reshape(4, 4).numpy()
+def _pose_entry(case: CaseRegistration, pose: Any) -> dict:
+    centred = as_numpy(pose).reshape(4, 4)
     return {
         "pose_centred": centred.tolist(),
         "pose_ras": pose_to_patient(centred, case.cta.ijk_to_ras, case.cta.shape_ijk, "RAS").tolist(),
@@ -56,16 +68,16 @@ def _pose_entry(case: CaseRegistration, pose: torch.Tensor) -> dict:
 
 
 def _view_entry(case: CaseRegistration, v: ViewOutcome, run: DSARun) -> dict:
-    r, t = params_from_pose(v.final_pose.detach().cpu().double())
-    angles = carm_angles_from_pose(v.final_pose.detach().cpu().double(), sid_mm=run.detector.sdd_mm)[0]
+    r, t = params_from_pose(as_numpy(v.final_pose).reshape(4, 4))
+    angles = carm_angles_from_params(r, t, sid_mm=run.detector.sdd_mm)
     entry = {
         "role": v.prepared.view_role,
         "view_label": v.init.view,
         "view_name": C.VIEW_NAMES[v.init.view],
-        "view_logits": v.init.logits.detach().cpu()[0].tolist(),
+        "view_logits": as_numpy(v.init.logits).reshape(-1).tolist(),
         **_pose_entry(case, v.final_pose),
-        "euler_zyx_rad": r[0].tolist(),
-        "translation_mm": t[0].tolist(),
+        "euler_zyx_rad": r.tolist(),
+        "translation_mm": t.tolist(),
         "carm": asdict(angles),
         "carm_doc": "equivalent positioner angles (deg) and distances (mm) about the centred CTA frame's origin",
         "acquisition": {

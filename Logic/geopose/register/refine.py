@@ -7,7 +7,6 @@ at the first rejection or after ``max_proposals``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
@@ -20,28 +19,9 @@ from ..nets import RefinePredictor
 from ..render import DRR
 from .calibration import render_model_view
 from .progress import Monitor
+from .results import Proposal, RefineTrace
 
-__all__ = ["Proposal", "RefineTrace", "greedy_refine"]
-
-
-@dataclass
-class Proposal:
-    pose: Tensor
-    mncc: float
-    accepted: bool
-
-
-@dataclass
-class RefineTrace:
-    start_pose: Tensor
-    start_mncc: float
-    pose: Tensor
-    mncc: float
-    proposals: list[Proposal] = field(default_factory=list)
-
-    @property
-    def accepted(self) -> int:
-        return sum(p.accepted for p in self.proposals)
+__all__ = ["greedy_refine"]
 
 
 @torch.no_grad()

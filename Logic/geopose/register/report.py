@@ -11,7 +11,8 @@ import torch
 from .. import viz
 from ..dsa.preprocess import resample_to_detector
 from ..geometry import Detector, project_points
-from .pipeline import VESSEL_CHANNEL, CaseRegistration
+from .case import VESSEL_CHANNEL
+from .results import CaseRegistration
 
 __all__ = ["write_overlays"]
 

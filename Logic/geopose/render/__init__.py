@@ -1,6 +1,11 @@
 """DRR rendering: HU->density, label channels, the differentiable cone-beam renderer."""
 
-from .density import hu_to_density, label_channels
-from .drr import DRR
+from ..lazy import lazy_exports
 
-__all__ = ["DRR", "hu_to_density", "label_channels"]
+__all__, __getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "density": ("hu_to_density", "label_channels"),
+        "drr": ("DRR",),
+    },
+)

@@ -2,7 +2,7 @@
 
 Sub-commands: ``population`` (canonicalise phantoms or a CTA folder -> cache ``.pt``),
 ``init`` and ``refine`` (train from a cache), ``evaluate`` (held-out metrics JSON),
-``ship`` (fp16 model files + manifest into a models folder).
+``ship`` (fp16 torch and ONNX model files + manifest into a models folder).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from . import recipe as R
 from .losses import LossWeights
-from .manifest import model_entry, write_manifest
+from .manifest import file_entry, model_entry, write_manifest
 from .population import folder_population, load_population, phantom_population, save_population
 from .trainer import TrainConfig, train
 
@@ -93,7 +93,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _ship(args: argparse.Namespace) -> int:
-    from ..nets import load_model, read_model_header, save_model
+    from ..nets import export_onnx, load_model, read_model_header, save_model
 
     models_dir = Path(args.models_dir)
     metrics = json.loads(Path(args.metrics).read_text()) if args.metrics else {}
@@ -104,10 +104,11 @@ def _ship(args: argparse.Namespace) -> int:
         if module.config.kind != kind:
             raise ValueError(f"{source} holds a {module.config.kind} network, expected {kind}")
         target = save_model(module, models_dir / f"geopose_{kind}.pt", header["metadata"], dtype="float16")
-        entries[kind] = model_entry(target, training=header["metadata"].get("training", {}))
+        graph = export_onnx(load_model(target), models_dir / f"geopose_{kind}.onnx", weights="float16")
+        entries[kind] = model_entry(target, onnx=file_entry(graph), training=header["metadata"].get("training", {}))
     notes = {"validation": metrics, "note": args.note} if args.note else {"validation": metrics}
     write_manifest(models_dir, entries, notes)
-    total = sum(e["bytes"] for e in entries.values())
+    total = sum(e["bytes"] + e["onnx"]["bytes"] for e in entries.values())
     _say(f"shipped {len(entries)} models ({total / 1e6:.1f} MB) with manifest to {models_dir}")
     return 0
 
@@ -160,7 +161,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default=None)
     p.add_argument("--out", type=Path, default=None)
     p.set_defaults(func=_evaluate)
-    p = sub.add_parser("ship", help="write fp16 model files and manifest.json into a models folder")
+    p = sub.add_parser("ship", help="write fp16 model files (torch and ONNX) and manifest.json into a models folder")
     p.add_argument("--init", required=True, type=Path)
     p.add_argument("--refine", required=True, type=Path)
     p.add_argument("--metrics", type=Path, default=None, help="JSON from `geopose train evaluate`")

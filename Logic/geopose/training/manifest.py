@@ -1,8 +1,9 @@
 """``Resources/Models/manifest.json``: what the shipped model files are, and their checksums.
 
-The manifest lists, per network kind, the file name, its SHA-256 and size, the
+The manifest lists, per network kind, the file name, its SHA-256 and size (and the
+same for the network's ONNX graph under ``onnx``), the
 architecture, the input geometry, the training recipe and seeds, and the
-validation metrics. :func:`geopose.nets.model_io.verify_manifest` checks every listed file before use.
+validation metrics. :func:`geopose.nets.manifest.verify_manifest` checks every listed file before use.
 """
 
 from __future__ import annotations
@@ -13,9 +14,16 @@ from pathlib import Path
 
 from ..contract import MODEL_DETECTOR_PX, MODEL_PIXEL_SPACING_MM, MODEL_SDD_MM
 from ..nets import read_model_header
-from ..nets.model_io import MANIFEST_NAME, MANIFEST_SCHEMA, file_sha256, verify_manifest
+from ..checksums import file_sha256
+from ..nets.manifest import MANIFEST_NAME, MANIFEST_SCHEMA, verify_manifest
 
-__all__ = ["MANIFEST_NAME", "MANIFEST_SCHEMA", "file_sha256", "model_entry", "verify_manifest", "write_manifest"]
+__all__ = ["MANIFEST_NAME", "MANIFEST_SCHEMA", "file_entry", "file_sha256", "model_entry", "verify_manifest", "write_manifest"]
+
+
+def file_entry(path: str | os.PathLike) -> dict:
+    """``{"file", "sha256", "bytes"}`` of one file in the models folder."""
+    path = Path(path)
+    return {"file": path.name, "sha256": file_sha256(path), "bytes": path.stat().st_size}
 
 
 def model_entry(path: str | os.PathLike, **extra) -> dict:
@@ -23,9 +31,7 @@ def model_entry(path: str | os.PathLike, **extra) -> dict:
     path = Path(path)
     header = read_model_header(path)
     return {
-        "file": path.name,
-        "sha256": file_sha256(path),
-        "bytes": path.stat().st_size,
+        **file_entry(path),
         "architecture": header["architecture"],
         "storage_dtype": header["storage_dtype"],
         "input": {

@@ -18,8 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .contract import MNCC_GLOBAL_WEIGHT, MNCC_PATCH_PX, MODEL_SDD_MM, NCC_EPS, VIEW_NAMES
-from .geometry.rigid import RigidTransform, params_from_pose, rotation_angle_rad
+from ..contract import MNCC_GLOBAL_WEIGHT, MNCC_PATCH_PX, MODEL_SDD_MM, NCC_EPS, VIEW_NAMES
+from ..geometry.rigid import RigidTransform, params_from_pose, rotation_angle_rad
 
 __all__ = [
     "ncc",
