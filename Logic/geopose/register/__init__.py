@@ -8,6 +8,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
         "calibration": ("calibrate", "calibrated_init", "render_model_view"),
+        "gating": ("gated_refinement",),
         "case": ("VIEW_KEYS", "case_labels", "prepare_views"),
         "numpy_pipeline": ("register_case_numpy",),
         "pipeline": ("PreparedCase", "prepare_case", "register_case", "resolve_device"),

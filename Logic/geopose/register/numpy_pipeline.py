@@ -28,9 +28,10 @@ from ..render.numpy_drr import NumpyDRR
 from ..resources import default_models_dir
 from ..volume import Volume
 from .case import CRANIUM_CHANNEL, LABEL_GROUPS, TTO_PX_CPU, VIEW_KEYS, case_labels, prepare_views
+from .gating import gated_refinement
 from .progress import CancelCheck, Monitor, ProgressCallback
 from .quality import assess
-from .results import Calibration, CaseRegistration, InitEstimate, Proposal, RefineTrace, RegistrationOptions, ViewOutcome
+from .results import Calibration, CaseRegistration, InitEstimate, RefineTrace, RegistrationOptions, ViewOutcome
 
 __all__ = ["DEFAULT_RENDER_PX", "DEVICE_LABEL", "register_case_numpy", "render_model_view", "greedy_refine_numpy"]
 
@@ -55,27 +56,16 @@ def greedy_refine_numpy(
     render_px: int = DEFAULT_RENDER_PX,
     monitor: Monitor | None = None,
 ) -> RefineTrace:
-    """Refine ``pose`` ``(4, 4)`` against a model-geometry ``target`` ``(1, 1, 256, 256)``:
-    proposals ``inverse(D) @ T`` are kept while the mNCC strictly increases."""
-    monitor = monitor or Monitor()
-    current = pose
-    image = render_model_view(drr, current, render_px)
-    score = mncc(target[0, 0], image[0, 0])
-    trace = RefineTrace(pose, score, pose, score)
-    for k in range(max_proposals):
-        monitor.step("refine", k / max_proposals, f"proposal {k + 1}/{max_proposals}")
-        residual = refine.predict_residual(target, image, view)[0]
-        candidate = invert(residual) @ current
-        cand_image = render_model_view(drr, candidate, render_px)
-        cand_score = mncc(target[0, 0], cand_image[0, 0])
-        accepted = cand_score > score
-        trace.proposals.append(Proposal(candidate, cand_score, accepted))
-        if not accepted:
-            break
-        current, image, score = candidate, cand_image, cand_score
-    trace.pose, trace.mncc = current, score
-    monitor.step("refine", 1.0, f"{trace.accepted} of {len(trace.proposals)} proposals accepted")
-    return trace
+    """Refine ``pose`` ``(4, 4)`` against a model-geometry ``target`` ``(1, 1, 256, 256)``
+    (the rule of ``gating.py``; proposals ``inverse(D) @ T``)."""
+    return gated_refinement(
+        pose,
+        lambda p: render_model_view(drr, p, render_px),
+        lambda image: mncc(target[0, 0], image[0, 0]),
+        lambda current, image: invert(refine.predict_residual(target, image, view)[0]) @ current,
+        max_proposals,
+        monitor,
+    )
 
 
 def _final_scores(drr: NumpyDRR, pose: np.ndarray, prepared: PreparedDSA) -> tuple[float, float]:

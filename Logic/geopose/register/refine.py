@@ -18,8 +18,9 @@ from ..metrics import mncc
 from ..nets import RefinePredictor
 from ..render import DRR
 from .calibration import render_model_view
+from .gating import gated_refinement
 from .progress import Monitor
-from .results import Proposal, RefineTrace
+from .results import RefineTrace
 
 __all__ = ["greedy_refine"]
 
@@ -36,22 +37,11 @@ def greedy_refine(
     monitor: Monitor | None = None,
 ) -> RefineTrace:
     """Refine ``pose`` ``(1, 4, 4)`` against a model-geometry ``target`` ``(1, 1, 256, 256)``."""
-    monitor = monitor or Monitor()
-    current = pose
-    image = render(drr, current)
-    score = float(mncc(target, image))
-    trace = RefineTrace(pose, score, pose, score)
-    for k in range(max_proposals):
-        monitor.step("refine", k / max_proposals, f"proposal {k + 1}/{max_proposals}")
+
+    def propose(current: Tensor, image: Tensor) -> Tensor:
         residual = refine.predict_residual(target, image, view).to(current.dtype)
-        candidate = RigidTransform(residual).inverse().matrix @ current
-        cand_image = render(drr, candidate)
-        cand_score = float(mncc(target, cand_image))
-        accepted = cand_score > score
-        trace.proposals.append(Proposal(candidate, cand_score, accepted))
-        if not accepted:
-            break
-        current, image, score = candidate, cand_image, cand_score
-    trace.pose, trace.mncc = current, score
-    monitor.step("refine", 1.0, f"{trace.accepted} of {len(trace.proposals)} proposals accepted")
-    return trace
+        return RigidTransform(residual).inverse().matrix @ current
+
+    return gated_refinement(
+        pose, lambda p: render(drr, p), lambda image: float(mncc(target, image)), propose, max_proposals, monitor
+    )
