@@ -189,7 +189,7 @@ def final_mncc(drr: DRR, pose: torch.Tensor, prepared: PreparedDSA, device: torc
     """mNCC between the DSA MAP and the DRR at ``pose`` in the TTO geometry."""
     with torch.no_grad():
         image = drr(pose.float(), detector=prepared.tto_detector, channels=(0,))
-        return float(mncc(_tensor(prepared.tto_image, device), image))
+        return float(mncc(_tensor(prepared.tto_image, device).double(), image.double()))
 
 
 def synchronize(device: torch.device) -> None:

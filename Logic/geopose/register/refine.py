@@ -42,6 +42,9 @@ def greedy_refine(
         residual = refine.predict_residual(target, image, view).to(current.dtype)
         return RigidTransform(residual).inverse().matrix @ current
 
+    # The gate compares scores that differ in the third decimal: float64 moments (float32
+    # patch variances are off by about 0.005 in flat regions).
     return gated_refinement(
-        pose, lambda p: render(drr, p), lambda image: float(mncc(target, image)), propose, max_proposals, monitor
+        pose, lambda p: render(drr, p), lambda image: float(mncc(target.double(), image.double())), propose,
+        max_proposals, monitor,
     )
