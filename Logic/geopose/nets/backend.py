@@ -88,8 +88,11 @@ def make_predictors(
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    files = _model_files(source)
     device = torch.device(device)
+    if backend == "onnxruntime" and not isinstance(source, Mapping) and lists_format(source, "onnx"):
+        graphs = verify_manifest(source, "onnx")  # the shipped graphs
+        return OnnxInitPredictor(graphs["init"], device), OnnxRefinePredictor(graphs["refine"], device)
+    files = _model_files(source)
     if backend == "torch":
         for path in files.values():
             if path.suffix == ".onnx":
@@ -99,8 +102,5 @@ def make_predictors(
             if module.config.kind != kind:
                 raise ValueError(f"{files[kind]} holds a {module.config.kind} network, expected {kind}")
         return init, refine
-    if not isinstance(source, Mapping) and lists_format(source, "onnx"):
-        models = verify_manifest(source, "onnx")  # the shipped graphs
-    else:
-        models = {k: (p if p.suffix == ".onnx" else export_onnx(load_model(p))) for k, p in files.items()}
+    models = {k: (p if p.suffix == ".onnx" else export_onnx(load_model(p))) for k, p in files.items()}
     return OnnxInitPredictor(models["init"], device), OnnxRefinePredictor(models["refine"], device)

@@ -14,8 +14,8 @@ from ..volume import Volume
 from .progress import Monitor
 
 __all__ = [
-    "VIEW_KEYS", "TTO_PX_CUDA", "TTO_PX_CPU", "CRANIUM_BIT", "VESSEL_BIT", "LABEL_GROUPS", "CRANIUM_CHANNEL", "VESSEL_CHANNEL", "case_labels",
-    "prepare_views",
+    "VIEW_KEYS", "TTO_PX_CUDA", "TTO_PX_CPU", "CRANIUM_BIT", "VESSEL_BIT", "LABEL_GROUPS", "CRANIUM_CHANNEL",
+    "VESSEL_CHANNEL", "case_labels", "check_view_keys", "prepare_views", "silhouette_dice",
 ]
 
 VIEW_KEYS = ("pa", "lat")
@@ -59,6 +59,20 @@ def case_labels(cta: Volume, cranium_mask: Volume | None, segmentation: Volume |
     return cta.like(combined, role="geopose case labels"), source
 
 
+def check_view_keys(dsa: Mapping[str, DSARun]) -> None:
+    """A case is one PA and one lateral run keyed ``{"pa": ..., "lat": ...}``."""
+    if set(dsa) != set(VIEW_KEYS):
+        raise ValueError(f"need one PA and one lateral DSA run as {{'pa': ..., 'lat': ...}}, got {sorted(dsa)}")
+
+
+def silhouette_dice(silhouette: np.ndarray, reference: np.ndarray) -> float:
+    """Hard Dice of the projected CTA cranium (``silhouette > 0``) and the DSA cranium mask
+    (``reference > 0``) on the same detector; 1 when both are empty."""
+    sil, ref = np.asarray(silhouette) > 0, np.asarray(reference) > 0
+    denom = int(sil.sum()) + int(ref.sum())
+    return 1.0 if denom == 0 else 2.0 * int((sil & ref).sum()) / denom
+
+
 def prepare_views(
     dsa: Mapping[str, DSARun], *, tto_px: int, dsa_masks: Mapping[str, np.ndarray] | None = None,
     monitor: Monitor | None = None,
@@ -66,8 +80,7 @@ def prepare_views(
     """Preprocess ``{"pa": run, "lat": run}`` (CONVENTIONS 5), TTO targets at ``tto_px``;
     the 'pa' run must look PA and the 'lat' run lateral by their primary angles."""
     monitor = monitor or Monitor()
-    if set(dsa) != set(VIEW_KEYS):
-        raise ValueError(f"need one PA and one lateral DSA run as {{'pa': ..., 'lat': ...}}, got {sorted(dsa)}")
+    check_view_keys(dsa)
     prepared: dict[str, PreparedDSA] = {}
     for i, key in enumerate(VIEW_KEYS):
         monitor.step("prepare", (i + 1) / 3, f"DSA {key.upper()}")

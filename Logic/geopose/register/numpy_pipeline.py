@@ -27,7 +27,9 @@ from ..nets.preprocess import normalize_minmax
 from ..render.numpy_drr import NumpyDRR
 from ..resources import default_models_dir
 from ..volume import Volume
-from .case import CRANIUM_CHANNEL, LABEL_GROUPS, TTO_PX_CPU, VIEW_KEYS, case_labels, prepare_views
+from .case import (
+    CRANIUM_CHANNEL, LABEL_GROUPS, TTO_PX_CPU, VIEW_KEYS, case_labels, check_view_keys, prepare_views, silhouette_dice,
+)
 from .gating import gated_refinement
 from .progress import CancelCheck, Monitor, ProgressCallback
 from .quality import assess
@@ -71,10 +73,7 @@ def greedy_refine_numpy(
 def _final_scores(drr: NumpyDRR, pose: np.ndarray, prepared: PreparedDSA) -> tuple[float, float]:
     """(mNCC of the DRR against the TTO target, hard Dice of the projected cranium and the DSA mask)."""
     image = drr(pose, detector=prepared.tto_detector, channels=(0, CRANIUM_CHANNEL))
-    silhouette, reference = image[1] > 0, prepared.tto_mask > 0
-    denom = int(silhouette.sum()) + int(reference.sum())
-    dice = 1.0 if denom == 0 else 2.0 * int((silhouette & reference).sum()) / denom
-    return mncc(prepared.tto_image, image[0]), dice
+    return mncc(prepared.tto_image, image[0]), silhouette_dice(image[1], prepared.tto_mask)
 
 
 def register_case_numpy(
@@ -105,6 +104,7 @@ def register_case_numpy(
     else:
         init, refine = onnx_predictors(default_models_dir() if models is None else models)
 
+    check_view_keys(dsa)
     t0 = time.perf_counter()
     monitor.step("prepare", 0.0, "CTA masks")
     labels, labels_source = case_labels(cta, cranium_mask, segmentation)

@@ -21,7 +21,10 @@ from ..nets import InitPredictor, RefinePredictor
 from ..render import DRR
 from ..volume import Volume
 from .calibration import calibrate, calibrated_init
-from .case import CRANIUM_CHANNEL, LABEL_GROUPS, TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, case_labels, prepare_views
+from .case import (
+    CRANIUM_CHANNEL, LABEL_GROUPS, TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, case_labels, check_view_keys, prepare_views,
+)
+from .case import silhouette_dice as mask_dice
 from .progress import CancelCheck, Monitor, ProgressCallback
 from .quality import assess
 from .refine import greedy_refine
@@ -47,12 +50,10 @@ def _tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
 
 
 def silhouette_dice(drr: DRR, pose: torch.Tensor, prepared: PreparedDSA) -> float:
-    """Hard Dice between the projected CTA cranium (channel > 0) and the DSA cranium mask (TTO geometry)."""
+    """Hard Dice between the projected CTA cranium and the DSA cranium mask (TTO geometry)."""
     with torch.no_grad():
-        sil = drr(pose, detector=prepared.tto_detector, channels=(CRANIUM_CHANNEL,))[0, 0] > 0
-    ref = torch.as_tensor(prepared.tto_mask > 0, device=sil.device)
-    denom = int(sil.sum()) + int(ref.sum())
-    return 1.0 if denom == 0 else 2.0 * int((sil & ref).sum()) / denom
+        silhouette = drr(pose, detector=prepared.tto_detector, channels=(CRANIUM_CHANNEL,))[0, 0]
+    return mask_dice(silhouette.cpu().numpy(), prepared.tto_mask)
 
 
 @dataclass
@@ -93,8 +94,7 @@ def prepare_case(
     """CTA labels + renderer and the preprocessed PA / lateral runs (checked against their roles)."""
     options = options or RegistrationOptions()
     monitor = monitor or Monitor()
-    if set(dsa) != set(VIEW_KEYS):
-        raise ValueError(f"need one PA and one lateral DSA run as {{'pa': ..., 'lat': ...}}, got {sorted(dsa)}")
+    check_view_keys(dsa)
     device = resolve_device(options.device)
     monitor.step("prepare", 0.0, "CTA masks")
     labels, labels_source = case_labels(cta, cranium_mask, segmentation)
