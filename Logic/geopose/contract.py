@@ -15,6 +15,9 @@ VIEW_LAT_MINUS: Final = 0
 VIEW_PA: Final = 1
 VIEW_LAT_PLUS: Final = 2
 VIEW_NAMES: Final = ("LAT-", "PA", "LAT+")
+#: The view each view looks like in a left-right mirrored image (detector columns
+#: reversed): a head is nearly symmetric, so a mirrored LAT+ image resembles a LAT- one.
+MIRRORED_VIEW: Final = (VIEW_LAT_PLUS, VIEW_PA, VIEW_LAT_MINUS)
 #: Euler ZYX first angle (about world z, superior) of each view's isopose.
 VIEW_ANCHOR_RAD: Final = (-math.pi / 2, 0.0, math.pi / 2)
 #: |PositionerPrimaryAngle| beyond which a view is lateral.

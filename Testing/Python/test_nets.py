@@ -146,14 +146,14 @@ def test_init_view_rule_and_view_conditioned_pose():
         # logits (LAT-, PA, LAT+): PA highest, then LAT+.
         net.net.fc.view.bias.copy_(torch.tensor([0.0, 5.0, 1.0]))
     image = torch.rand(2, 1, 64, 64) * 40 + 3  # not normalised: predict min-maxes
-    pose, view, logits = net.predict(image, torch.tensor([False, True]))
+    pose, view, logits = net.predict(image, torch.tensor([False, True]), mirror=False)
     assert view.tolist() == [VIEW_PA, VIEW_LAT_PLUS]
     assert torch.allclose(logits[0], torch.tensor([0.0, 5.0, 1.0]))
-    _, view_free, _ = net.predict(image, None)
+    _, view_free, _ = net.predict(image, None, mirror=False)
     assert view_free.tolist() == [VIEW_PA, VIEW_PA]
     with torch.no_grad():
         net.net.fc.view.bias.copy_(torch.tensor([2.0, 5.0, 1.0]))
-    pose, view, _ = net.predict(image, torch.tensor(True))
+    pose, view, _ = net.predict(image, torch.tensor(True), mirror=False)
     assert view.tolist() == [VIEW_LAT_MINUS, VIEW_LAT_MINUS]
     # The pose equals the forward pass run with the chosen label's embedding.
     raw, _ = net(normalize_minmax(image), view)
@@ -164,6 +164,30 @@ def test_init_view_rule_and_view_conditioned_pose():
         net(image, torch.tensor([0, 3]))
     with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
         net.predict(torch.rand(2, 3, 64, 64))
+
+
+def test_mirror_averaged_side_is_antisymmetric_and_cancels_a_side_bias():
+    torch.manual_seed(1)
+    net = small_init().eval()
+    image = torch.rand(3, 1, 64, 64)
+    _, _, logits = net.predict(image, None)
+    _, _, mirrored = net.predict(image.flip(-1), None)
+    # LAT+ - LAT- margin flips sign with the image; the PA logit is unchanged.
+    margin = logits[:, VIEW_LAT_PLUS] - logits[:, VIEW_LAT_MINUS]
+    assert torch.allclose(margin, -(mirrored[:, VIEW_LAT_PLUS] - mirrored[:, VIEW_LAT_MINUS]), atol=1e-5)
+    assert margin.abs().min() > 1e-4
+    assert torch.allclose(logits[:, VIEW_PA], mirrored[:, VIEW_PA], atol=1e-5)
+    # It is the mean of the single-image logits and the mirrored image's, re-indexed.
+    _, single = net.forward_all_views(normalize_minmax(image))
+    _, single_flipped = net.forward_all_views(normalize_minmax(image).flip(-1))
+    expected = 0.5 * (single + single_flipped[:, [VIEW_LAT_PLUS, VIEW_PA, VIEW_LAT_MINUS]])
+    assert torch.allclose(logits, expected, atol=1e-5)
+    # A constant preference for LAT- (image-independent logits) cancels out.
+    with torch.no_grad():
+        net.net.fc.view.weight.zero_()
+        net.net.fc.view.bias.copy_(torch.tensor([3.0, 0.0, 1.0]))
+    _, _, biased = net.predict(image, None)
+    assert torch.allclose(biased[:, VIEW_LAT_PLUS], biased[:, VIEW_LAT_MINUS])
 
 
 # ------------------------------------------------------------------ Refine

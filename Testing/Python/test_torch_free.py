@@ -22,7 +22,9 @@ from geopose.geometry import numpy_poses as N
 from geopose.geometry import params_from_pose, source_and_detector_points
 from geopose.metrics import mncc
 from geopose.metrics import numpy_similarity
-from geopose.nets import decode_init_pose, make_predictors, normalize_minmax, residual_from_raw, select_view
+from geopose.nets import (
+    decode_init_pose, make_predictors, mirror_averaged_logits, normalize_minmax, residual_from_raw, select_view,
+)
 from geopose.nets import onnx_runtime
 from geopose.register import RegistrationOptions, register_case
 from geopose.register.case import LABEL_GROUPS
@@ -127,6 +129,11 @@ def test_numpy_decoding_matches_torch():
         onnx_runtime.decode_init_pose(raw, view), decode_init_pose(torch.as_tensor(raw), torch.as_tensor(view)).numpy(), atol=1e-9
     )
     np.testing.assert_allclose(onnx_runtime.residual_from_raw(raw), residual_from_raw(torch.as_tensor(raw)).numpy(), atol=1e-12)
+    mirrored = RNG.normal(size=(6, 3))
+    np.testing.assert_allclose(
+        onnx_runtime.mirror_averaged_logits(logits, mirrored),
+        mirror_averaged_logits(torch.as_tensor(logits), torch.as_tensor(mirrored)).numpy(), atol=1e-12,
+    )
 
 
 # ------------------------------------------------------------ without torch

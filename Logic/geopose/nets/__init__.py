@@ -8,7 +8,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "backend": (
             "InitPredictor", "OnnxInitPredictor", "OnnxRefinePredictor", "RefinePredictor", "make_predictors",
         ),
-        "decoding": ("decode_init_pose", "residual_from_raw", "select_view"),
+        "decoding": ("decode_init_pose", "mirror_averaged_logits", "residual_from_raw", "select_view"),
         "model_io": ("find_model_files", "load_model", "read_model_header", "save_model"),
         "onnx_export": ("export_onnx",),
         "models": (

@@ -21,8 +21,9 @@ BACKENDS = ("torch", "onnxruntime")
 
 
 class InitPredictor(Protocol):
-    def predict(self, image: Tensor, is_lateral: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """image ``(B,1,H,W)`` -> pose ``(B,4,4)`` (mm, centred frame), view ``(B,)``, logits ``(B,3)``."""
+    def predict(self, image: Tensor, is_lateral: Tensor | None = None, mirror: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+        """image ``(B,1,H,W)`` -> pose ``(B,4,4)`` (mm, centred frame), view ``(B,)``, logits ``(B,3)``
+        (``mirror``: averaged with the column-mirrored images' logits)."""
         ...
 
 
@@ -43,9 +44,9 @@ class OnnxInitPredictor:
         self.device = torch.device(device)
         self.runner = OnnxInit(model, use_cuda=self.device.type == "cuda")
 
-    def predict(self, image: Tensor, is_lateral: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    def predict(self, image: Tensor, is_lateral: Tensor | None = None, mirror: bool = True) -> tuple[Tensor, Tensor, Tensor]:
         lateral = None if is_lateral is None else _numpy(torch.as_tensor(is_lateral)).astype(bool)
-        pose, view, logits = self.runner.predict(_numpy(image), lateral)
+        pose, view, logits = self.runner.predict(_numpy(image), lateral, mirror)
         return (
             torch.from_numpy(pose).to(image.device, image.dtype),
             torch.from_numpy(view).to(image.device),

@@ -11,6 +11,7 @@ from torch import Tensor
 
 from ..contract import (
     INIT_TRANSLATION_SCALE_MM,
+    MIRRORED_VIEW,
     ISO_TRANSLATION_MM,
     REFINE_ROTATION_SCALE_RAD,
     REFINE_TRANSLATION_SCALE_MM,
@@ -35,6 +36,13 @@ def as_view_labels(view: Tensor | int, batch: int, device: torch.device | None =
     if bool(((labels < 0) | (labels >= NUM_VIEWS)).any()):
         raise ValueError(f"view labels must be in 0..{NUM_VIEWS - 1} ({', '.join(VIEW_NAMES)}), got {labels.tolist()}")
     return labels
+
+
+def mirror_averaged_logits(logits: Tensor, mirrored_logits: Tensor) -> Tensor:
+    """View logits ``(B, 3)`` averaged with those of the column-mirrored images, re-indexed
+    by :data:`MIRRORED_VIEW`: the LAT+ - LAT- margin becomes antisymmetric under mirroring,
+    so a bias of the network towards one side cancels."""
+    return 0.5 * (logits + mirrored_logits[:, list(MIRRORED_VIEW)])
 
 
 def select_view(logits: Tensor, is_lateral: Tensor | None) -> Tensor:

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from ..contract import VIEW_EMBEDDING_DIM
-from .decoding import NUM_VIEWS, as_view_labels, decode_init_pose, residual_from_raw, select_view
+from .decoding import NUM_VIEWS, as_view_labels, decode_init_pose, mirror_averaged_logits, residual_from_raw, select_view
 from .preprocess import normalize_minmax
 from .resnet import BackboneConfig, ResNetEncoder
 
@@ -116,13 +116,20 @@ class InitNet(nn.Module):
         return self.net.fc.domain(self.net(image))
 
     @torch.no_grad()
-    def predict(self, image: Tensor, is_lateral: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    def predict(self, image: Tensor, is_lateral: Tensor | None = None, mirror: bool = True) -> tuple[Tensor, Tensor, Tensor]:
         """Inference: image ``(B, 1, H, W)`` (any range; min-max applied) and PA/lateral metadata.
 
         Returns pose ``(B, 4, 4)`` (camera-to-world, centred frame, mm), view labels
-        ``(B,)`` chosen by :func:`select_view`, and the view logits ``(B, 3)``.
+        ``(B,)`` chosen by :func:`select_view`, and the view logits ``(B, 3)``. With
+        ``mirror`` the logits are averaged with those of the column-mirrored images
+        (:func:`mirror_averaged_logits`; one pass of 2B images), which decides the lateral
+        side more reliably than the published single-image rule; poses are unaffected.
         """
-        raw_all, logits = self.forward_all_views(normalize_minmax(image))
+        image = normalize_minmax(image)
+        batch = image.shape[0]
+        raw_all, logits = self.forward_all_views(torch.cat((image, image.flip(-1))) if mirror else image)
+        if mirror:
+            raw_all, logits = raw_all[:batch], mirror_averaged_logits(logits[:batch], logits[batch:])
         view = select_view(logits, is_lateral)
         raw = raw_all[torch.arange(raw_all.shape[0], device=raw_all.device), view]
         return decode_init_pose(raw, view), view, logits

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..contract import (
     INIT_TRANSLATION_SCALE_MM,
+    MIRRORED_VIEW,
     ISO_TRANSLATION_MM,
     REFINE_ROTATION_SCALE_RAD,
     REFINE_TRANSLATION_SCALE_MM,
@@ -32,12 +33,17 @@ from .manifest import verify_manifest
 from .preprocess import normalize_minmax
 
 __all__ = [
-    "KIND_METADATA_KEY", "OnnxInit", "OnnxRefine", "onnx_predictors", "select_view", "decode_init_pose",
+    "KIND_METADATA_KEY", "OnnxInit", "OnnxRefine", "onnx_predictors", "mirror_averaged_logits", "select_view", "decode_init_pose",
     "residual_from_raw",
 ]
 
 #: Key of the ONNX metadata entry that records the network kind (written by ``export_onnx``).
 KIND_METADATA_KEY = "geopose_kind"
+
+
+def mirror_averaged_logits(logits: np.ndarray, mirrored_logits: np.ndarray) -> np.ndarray:
+    """``(B, 3)`` logits averaged with those of the column-mirrored images, re-indexed by ``MIRRORED_VIEW``."""
+    return 0.5 * (logits + mirrored_logits[:, list(MIRRORED_VIEW)])
 
 
 def select_view(logits: np.ndarray, is_lateral: np.ndarray | bool | None) -> np.ndarray:
@@ -106,8 +112,16 @@ class OnnxInit(_Session):
 
     kind = "init"
 
-    def predict(self, image: np.ndarray, is_lateral: np.ndarray | bool | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        raw_all, logits = self.session.run(None, {"image": self.images("image", image)})
+    def predict(
+        self, image: np.ndarray, is_lateral: np.ndarray | bool | None = None, mirror: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``mirror``: view logits averaged with the column-mirrored images' (see ``InitNet.predict``)."""
+        image = self.images("image", image)
+        batch = len(image)
+        if mirror:
+            image = np.concatenate((image, image[..., ::-1]))
+        raw_all, logits = self.session.run(None, {"image": np.ascontiguousarray(image)})
+        raw_all, logits = raw_all[:batch], (mirror_averaged_logits(logits[:batch], logits[batch:]) if mirror else logits)
         view = select_view(logits, is_lateral)
         return decode_init_pose(raw_all[np.arange(len(view)), view], view), view, logits
 

@@ -21,7 +21,8 @@ from ..geometry.numpy_poses import params_from_pose
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
-SCHEMA_VERSION = 1
+#: 2: ``view_logits`` are mirror-averaged (``view_logits_doc`` says so); 1: single-image logits.
+SCHEMA_VERSION = 2
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "as_numpy", "build_record", "write_record", "library_versions"]
 
@@ -75,6 +76,7 @@ def _view_entry(case: CaseRegistration, v: ViewOutcome, run: DSARun) -> dict:
         "view_label": v.init.view,
         "view_name": C.VIEW_NAMES[v.init.view],
         "view_logits": as_numpy(v.init.logits).reshape(-1).tolist(),
+        "view_logits_doc": "(LAT-, PA, LAT+) logits of the MAP averaged with its left-right mirror's (nets.mirror_averaged_logits)",
         **_pose_entry(case, v.final_pose),
         "euler_zyx_rad": r.tolist(),
         "translation_mm": t.tolist(),

@@ -1,0 +1,102 @@
+"""Lateral side (LAT- / LAT+) decided by the shipped Init network on held-out phantom
+lateral runs: the published single-image rule against the mirror-averaged logits
+(``geopose.nets.mirror_averaged_logits``). Each subject is written as DICOM/NIfTI and
+read back, as in ``geopose bench``; the true side comes from the run's primary angle.
+Prints a Markdown table; ``--doc`` writes it.
+
+    .venv/bin/python benchmarks/bench_view_side.py --seeds 5000-5039 6000-6029 --doc docs/view_side.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
+
+from geopose import contract as C  # noqa: E402
+from geopose.bench.cases import phantom_case, training_seeds  # noqa: E402
+from geopose.nets import make_predictors  # noqa: E402
+from geopose.dsa import preprocess_dsa  # noqa: E402
+from geopose.register.case import TTO_PX_CPU  # noqa: E402
+from geopose.resources import default_models_dir  # noqa: E402
+
+
+def _seeds(text: str) -> list[int]:
+    lo, _, hi = text.partition("-")
+    return list(range(int(lo), int(hi or lo) + 1))
+
+
+def side_margins(init, target: torch.Tensor) -> tuple[float, float]:
+    """LAT+ minus LAT- logit of the single image and of the mirror-averaged logits."""
+    _, _, single = init.predict(target, torch.tensor([True]), mirror=False)
+    _, _, mirrored = init.predict(target, torch.tensor([True]), mirror=True)
+    margin = lambda logits: float(logits[0, C.VIEW_LAT_PLUS] - logits[0, C.VIEW_LAT_MINUS])  # noqa: E731
+    return margin(single), margin(mirrored)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", nargs="+", type=_seeds, default=[_seeds("5000-5039")], help="ranges such as 5000-5039")
+    ap.add_argument("--spacing-mm", type=float, default=2.0)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--doc", type=Path, default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    seeds = sorted({s for group in args.seeds for s in group})
+    clash = training_seeds(default_models_dir() / "manifest.json") & set(seeds)
+    if clash:
+        raise SystemExit(f"seeds {sorted(clash)} were used to train the shipped models: choose held-out seeds")
+    init, _ = make_predictors(default_models_dir(), backend="torch", device="cpu")
+    rows, right = [], {"single": 0, "mirror": 0}
+    t0 = time.perf_counter()
+    for i, seed in enumerate(seeds):
+        with tempfile.TemporaryDirectory() as tmp:
+            case = phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm)
+        run = case.runs["lat"]
+        target = torch.as_tensor(preprocess_dsa(run, tto_px=TTO_PX_CPU).model_image, dtype=torch.float32)[None, None]
+        true_side = run.view_label
+        single, mirror = side_margins(init, target)
+        verdict = {}
+        for rule, m in (("single", single), ("mirror", mirror)):
+            side = C.VIEW_LAT_PLUS if m > 0 else C.VIEW_LAT_MINUS
+            verdict[rule] = side == true_side
+            right[rule] += verdict[rule]
+        rows.append(
+            f"| {seed} | {C.VIEW_NAMES[true_side]} | {single:+.2f} | {'yes' if verdict['single'] else '**no**'} "
+            f"| {mirror:+.2f} | {'yes' if verdict['mirror'] else '**no**'} |"
+        )
+        print(f"[{i + 1}/{len(seeds)}] {rows[-1]}", file=sys.stderr, flush=True)
+    n = len(seeds)
+    lines = [
+        f"Shipped Init (`{default_models_dir().name}`), {n} held-out phantom lateral runs at {args.spacing_mm:g} mm, "
+        f"torch {torch.__version__}, {platform.processor() or platform.machine()}, {args.threads} threads, "
+        f"{time.perf_counter() - t0:.0f} s. Margin = LAT+ minus LAT- logit (positive: LAT+).",
+        "",
+        "| rule | side right | accuracy |",
+        "|---|---:|---:|",
+        f"| single image (published) | {right['single']}/{n} | {100 * right['single'] / n:.1f} % |",
+        f"| mirror-averaged (shipped default) | {right['mirror']}/{n} | {100 * right['mirror'] / n:.1f} % |",
+        "",
+        "| seed | true side | single-image margin | right | mirror-averaged margin | right |",
+        "|---:|---|---:|---|---:|---|",
+        *rows,
+    ]
+    table = "\n".join(lines)
+    print(table)
+    if args.doc:
+        args.doc.write_text(
+            "# Lateral side: single image vs mirror-averaged logits\n\n"
+            "`benchmarks/bench_view_side.py`; the rule is described in the README (Python section).\n\n" + table + "\n"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
