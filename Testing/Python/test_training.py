@@ -196,10 +196,13 @@ def test_training_runs_logs_checkpoints_and_resumes(tiny_population, tmp_path):
         train(TrainConfig("init", steps=4, **{**TINY, "seed": 6}), tiny_population, out, progress=False)
 
 
-def test_refine_training_starts_from_the_init_encoder(tiny_population, tmp_path):
+def test_refine_training_starts_from_the_init_encoder(tiny_population, tmp_path, capsys):
     init_path = train(TrainConfig("init", steps=1, **TINY), tiny_population, tmp_path / "init", progress=False)
-    config = TrainConfig("refine", steps=1, init_model=str(init_path), calibration_samples=4, bank_size=4, **TINY)
-    path = train(config, tiny_population, tmp_path / "refine", progress=False)
+    config = TrainConfig("refine", steps=1, init_model=str(init_path), calibration_samples=4, bank_size=12, **TINY)
+    path = train(config, tiny_population, tmp_path / "refine")
+    # The bank is pre-rendered in chunks of 8, each reported (off a terminal: one line per tenth).
+    err = capsys.readouterr().err
+    assert "8/12 samples pre-rendered" in err and "12/12 samples pre-rendered" in err
     meta = read_model_header(path)["metadata"]["training"]
     lo, hi = R.CALIBRATION_CLAMP
     for got, base in zip(meta["perturbation"]["lat_translation_mm"], R.REFINE_LAT_TRANSLATION_SD_MM):

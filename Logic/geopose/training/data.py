@@ -8,6 +8,7 @@ A *bank* pre-renders a fixed set of samples once and draws batches from it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 import torch
@@ -104,10 +105,18 @@ class OnTheFlySource:
 class BankSource:
     """``size`` samples pre-rendered once (stored float16), batches drawn with replacement (the CPU path)."""
 
-    def __init__(self, source: OnTheFlySource, size: int, gen: torch.Generator, chunk: int = 8) -> None:
+    def __init__(
+        self, source: OnTheFlySource, size: int, gen: torch.Generator, chunk: int = 8,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> None:
+        """``progress(done, size)`` is called after each rendered chunk."""
         if size < 1:
             raise ValueError(f"bank size must be positive, got {size}")
-        parts = [source.batch(min(chunk, size - start), gen) for start in range(0, size, chunk)]
+        parts = []
+        for start in range(0, size, chunk):
+            parts.append(source.batch(min(chunk, size - start), gen))
+            if progress is not None:
+                progress(start + len(parts[-1].view), size)
         self.renderer = source.renderer
         self.bank = Batch(
             **{

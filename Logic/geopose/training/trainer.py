@@ -13,6 +13,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -126,6 +127,18 @@ class Progress:
             print(file=sys.stderr)
 
 
+def _tenths(bar: Progress, text: str) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback drawing ``bar``, with a plain line per tenth off a terminal."""
+    last = [-1]
+
+    def report(done: int, total: int) -> None:
+        tenth = 10 * done // total
+        bar.update(done, text, force=tenth != last[0])
+        last[0] = tenth
+
+    return report
+
+
 def _lr_lambda(total: int):
     warm = max(1, int(WARMUP_FRACTION * total))
 
@@ -229,7 +242,9 @@ def train(
         del init_net
     source = OnTheFlySource(renderer, config.kind, perturbation)
     if config.bank_size:
-        source = BankSource(source, config.bank_size, data_gen)
+        bank_bar = Progress(config.bank_size, 0, enabled=progress and rank == 0)
+        source = BankSource(source, config.bank_size, data_gen, progress=_tenths(bank_bar, "samples pre-rendered"))
+        bank_bar.close()
 
     params = [p for p in model.parameters() if p.requires_grad]
     optimiser = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
