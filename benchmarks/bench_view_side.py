@@ -21,16 +21,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
 
 from geopose import contract as C  # noqa: E402
-from geopose.bench.cases import phantom_case, training_seeds  # noqa: E402
+from geopose.bench.cases import phantom_case, seed_range, training_seeds  # noqa: E402
 from geopose.nets import make_predictors  # noqa: E402
 from geopose.dsa import preprocess_dsa  # noqa: E402
 from geopose.register.case import TTO_PX_CPU  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
-
-
-def _seeds(text: str) -> list[int]:
-    lo, _, hi = text.partition("-")
-    return list(range(int(lo), int(hi or lo) + 1))
 
 
 def side_margins(init, target: torch.Tensor) -> tuple[float, float]:
@@ -43,7 +38,7 @@ def side_margins(init, target: torch.Tensor) -> tuple[float, float]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", nargs="+", type=_seeds, default=[_seeds("5000-5039")], help="ranges such as 5000-5039")
+    ap.add_argument("--seeds", nargs="+", type=seed_range, default=[seed_range("5000-5039")], help="ranges such as 5000-5039")
     ap.add_argument("--spacing-mm", type=float, default=2.0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--doc", type=Path, default=None)

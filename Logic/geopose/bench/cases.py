@@ -24,7 +24,7 @@ from ..register.evaluate import load_truth
 from ..render import DRR
 from ..volume import Volume
 
-__all__ = ["BenchCase", "phantom_case", "headsq_case", "training_seeds", "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX"]
+__all__ = ["BenchCase", "phantom_case", "headsq_case", "training_seeds", "seed_range", "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX"]
 
 #: The VTK headsq file stores raw values: HU = value - 1024.
 HEADSQ_HU_OFFSET = -1024.0
@@ -61,6 +61,15 @@ def training_seeds(manifest: str | Path) -> set[int]:
         if "template_seed" in data:
             seeds.add(int(data["template_seed"]))
     return seeds
+
+
+def seed_range(text: str) -> list[int]:
+    """Seeds written ``"5000-5039"`` (inclusive) or ``"5000"``."""
+    lo, _, hi = text.partition("-")
+    try:
+        return list(range(int(lo), int(hi or lo) + 1))
+    except ValueError:
+        raise ValueError(f"seed range {text!r}: write FIRST-LAST or one seed, e.g. 5000-5039") from None
 
 
 def phantom_case(seed: int, folder: Path, spacing_mm: float = 1.0) -> BenchCase:
