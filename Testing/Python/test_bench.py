@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from geopose.bench import BenchSettings, convergence_figure, markdown, row_names, summarise, training_seeds
+from geopose.bench import BenchSettings, convergence_figure, markdown, row_names, seed_range, summarise, training_seeds
 from geopose.cli import main
 
 
@@ -52,6 +52,13 @@ def test_missing_metrics_are_left_out_not_zeroed():
     s = summarise([a])
     assert s["rows"]["Init"]["cldice"]["pa"] == {"mean": None, "sd": None, "n": 0}
     assert s["rows"]["Init"]["cldice"]["avg"]["mean"] == pytest.approx(0.4)
+
+
+def test_seed_ranges_are_inclusive_and_bad_text_names_the_remedy():
+    assert seed_range("5000-5003") == [5000, 5001, 5002, 5003]
+    assert seed_range("6028") == [6028]
+    with pytest.raises(ValueError, match="FIRST-LAST"):
+        seed_range("5000..5039")
 
 
 def test_convergence_figure_is_written(tmp_path):
