@@ -11,7 +11,6 @@ writes it.
 
 from __future__ import annotations
 
-import argparse
 import platform
 import sys
 import tempfile
@@ -21,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
+from heldout import parse_heldout_args, publish  # puts Logic/ on sys.path
 
-from geopose.bench.cases import phantom_case, seed_range, training_seeds  # noqa: E402
+from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.geometry import params_from_pose  # noqa: E402
 from geopose.nets import make_predictors  # noqa: E402
 from geopose.register import RegistrationOptions, prepare_case  # noqa: E402
@@ -47,17 +46,7 @@ def _summary(name: str, errors: np.ndarray, truth: np.ndarray, estimate: np.ndar
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", nargs="+", type=seed_range, default=[seed_range("5000-5019")], help="ranges such as 5000-5019")
-    ap.add_argument("--spacing-mm", type=float, default=2.0)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--doc", type=Path, default=None)
-    args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    seeds = sorted({s for group in args.seeds for s in group})
-    clash = training_seeds(default_models_dir() / "manifest.json") & set(seeds)
-    if clash:
-        raise SystemExit(f"seeds {sorted(clash)} were used to train the shipped models: choose held-out seeds")
+    args, seeds = parse_heldout_args(__doc__.splitlines()[0], "5000-5019")
     init, _ = make_predictors(default_models_dir(), backend="torch", device="cpu")
     rows, table = [], []
     t0 = time.perf_counter()
@@ -92,13 +81,8 @@ def main() -> int:
         "|---:|---|---:|---:|---:|",
         *rows,
     ]
-    text = "\n".join(lines)
-    print(text)
-    if args.doc:
-        args.doc.write_text(
-            "# Init depth: simulated DSA MAP vs DRR\n\n`benchmarks/bench_init_depth.py`; "
-            "what the numbers mean is in `docs/benchmark/bench.md` (Reading these numbers).\n\n" + text + "\n"
-        )
+    publish("\n".join(lines), args.doc, "Init depth: simulated DSA MAP vs DRR",
+            "`benchmarks/bench_init_depth.py`; what the numbers mean is in `docs/benchmark/bench.md` (Reading these numbers).")
     return 0
 
 

@@ -9,7 +9,6 @@ Prints a Markdown table; ``--doc`` writes it.
 
 from __future__ import annotations
 
-import argparse
 import platform
 import sys
 import tempfile
@@ -18,10 +17,10 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
+from heldout import parse_heldout_args, publish  # puts Logic/ on sys.path
 
 from geopose import contract as C  # noqa: E402
-from geopose.bench.cases import phantom_case, seed_range, training_seeds  # noqa: E402
+from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.nets import make_predictors  # noqa: E402
 from geopose.dsa import preprocess_dsa  # noqa: E402
 from geopose.register.case import TTO_PX_CPU  # noqa: E402
@@ -37,17 +36,7 @@ def side_margins(init, target: torch.Tensor) -> tuple[float, float]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", nargs="+", type=seed_range, default=[seed_range("5000-5039")], help="ranges such as 5000-5039")
-    ap.add_argument("--spacing-mm", type=float, default=2.0)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--doc", type=Path, default=None)
-    args = ap.parse_args()
-    torch.set_num_threads(args.threads)
-    seeds = sorted({s for group in args.seeds for s in group})
-    clash = training_seeds(default_models_dir() / "manifest.json") & set(seeds)
-    if clash:
-        raise SystemExit(f"seeds {sorted(clash)} were used to train the shipped models: choose held-out seeds")
+    args, seeds = parse_heldout_args(__doc__.splitlines()[0], "5000-5039")
     init, _ = make_predictors(default_models_dir(), backend="torch", device="cpu")
     rows, right = [], {"single": 0, "mirror": 0}
     t0 = time.perf_counter()
@@ -83,13 +72,8 @@ def main() -> int:
         "|---:|---|---:|---|---:|---|",
         *rows,
     ]
-    table = "\n".join(lines)
-    print(table)
-    if args.doc:
-        args.doc.write_text(
-            "# Lateral side: single image vs mirror-averaged logits\n\n"
-            "`benchmarks/bench_view_side.py`; the rule is described in the README (Python section).\n\n" + table + "\n"
-        )
+    publish("\n".join(lines), args.doc, "Lateral side: single image vs mirror-averaged logits",
+            "`benchmarks/bench_view_side.py`; the rule is described in the README (Python section).")
     return 0
 
 
