@@ -1,10 +1,11 @@
-"""Depth of the calibrated Init pose: on the simulated DSA MAP against on a DRR of the
-same CTA rendered at the true pose (model geometry). Depth = the pose parameter t_y
-(mm), the source-to-volume-centre distance along the central ray (CONVENTIONS 1-2).
-If the DRR column is right and the MAP column is not, the error is the MAP-vs-DRR
-appearance gap of the trained network, not geometry. Held-out phantoms are written as
-DICOM/NIfTI and read back, as in ``geopose bench``. Prints a Markdown table; ``--doc``
-writes it.
+"""Depth of the calibrated Init pose on four inputs of one view: the simulated DSA MAP
+(what registration sees), a DRR of the same CTA at the true pose (model geometry), that
+DRR masked by the MAP's cranium mask, and that DRR through the MAP's intensity chain
+(CONVENTIONS 5: percentile clip, mask, bilateral, min-max). Depth = the pose parameter
+t_y (mm), the source-to-volume-centre distance along the central ray (CONVENTIONS 1-2).
+The columns separate geometry from appearance and name the preprocessing step that the
+network was not trained for. Held-out phantoms are written as DICOM/NIfTI and read back,
+as in ``geopose bench``. Prints a Markdown table; ``--doc`` writes it.
 
     .venv/bin/python benchmarks/bench_init_depth.py --seeds 5000-5019 --doc docs/init_depth.md
 """
@@ -23,6 +24,7 @@ import torch
 from heldout import parse_heldout_args, publish  # puts Logic/ on sys.path
 
 from geopose.bench.cases import phantom_case  # noqa: E402
+from geopose.dsa.preprocess import bilateral, clip_intensities, minmax  # noqa: E402
 from geopose.geometry import params_from_pose  # noqa: E402
 from geopose.nets import make_predictors  # noqa: E402
 from geopose.register import RegistrationOptions, prepare_case  # noqa: E402
@@ -37,6 +39,24 @@ DEPTH_AXIS = 1
 def depth_mm(pose: torch.Tensor) -> float:
     """``t_y`` (mm) of a camera-to-world pose ``(1, 4, 4)``."""
     return float(params_from_pose(pose.double())[1][0, DEPTH_AXIS])
+
+
+#: The inputs compared, in table order.
+INPUTS = (
+    "simulated DSA MAP (what registration sees)",
+    "DRR at the true pose",
+    "the DRR masked by the MAP's cranium mask",
+    "the DRR percentile-clipped and masked",
+    "the DRR through the MAP's intensity chain (clip, mask, bilateral)",
+)
+
+
+def map_chain(drr: torch.Tensor, mask: np.ndarray, smooth: bool = True) -> torch.Tensor:
+    """A model-geometry image ``(1, 1, H, W)`` through the MAP's intensities: percentile clip
+    over the masked columns, mask, bilateral on an 8-bit scale (``smooth``), min-max."""
+    clipped = clip_intensities(drr[0, 0].cpu().numpy(), mask) * mask
+    eight_bit = clipped / max(float(clipped.max()), 1e-6) * 255.0
+    return torch.as_tensor(minmax(bilateral(eight_bit) if smooth else eight_bit))[None, None]
 
 
 def _summary(name: str, errors: np.ndarray, truth: np.ndarray, estimate: np.ndarray) -> str:
@@ -59,14 +79,16 @@ def main() -> int:
         for key in VIEW_KEYS:
             true = torch.as_tensor(case.true_poses[key], dtype=torch.float64)[None]
             lateral = key == "lat"
-            on_map = calibrated_init(prep.model_target(key), lateral, init, cal)
             with torch.no_grad():
-                on_drr = calibrated_init(render_model_view(prep.drr, true.float()), lateral, init, cal)
-            d = (depth_mm(true), depth_mm(on_map.pose_native), depth_mm(on_drr.pose_native))
+                drr = render_model_view(prep.drr, true.float())
+            mask = prep.views[key].model_mask
+            images = (prep.model_target(key), drr, drr * torch.as_tensor(mask, dtype=drr.dtype),
+                      map_chain(drr, mask, smooth=False), map_chain(drr, mask))
+            d = [depth_mm(true)] + [depth_mm(calibrated_init(x, lateral, init, cal).pose_native) for x in images]
             table.append(d)
-            rows.append(f"| {seed} | {key.upper()} | {d[0]:.0f} | {d[1]:.0f} ({d[1] - d[0]:+.0f}) | {d[2]:.0f} ({d[2] - d[0]:+.0f}) |")
+            rows.append(f"| {seed} | {key.upper()} | {d[0]:.0f} | " + " | ".join(f"{v:.0f} ({v - d[0]:+.0f})" for v in d[1:]) + " |")
             print(f"[{i + 1}/{len(seeds)}] {rows[-1]}", file=sys.stderr, flush=True)
-    truth, on_map, on_drr = np.asarray(table).T
+    truth, *estimates = np.asarray(table).T
     lines = [
         f"Shipped Init (`{default_models_dir().name}`), calibrated, {len(table)} views of {len(seeds)} held-out phantoms "
         f"at {args.spacing_mm:g} mm, torch {torch.__version__}, {platform.processor() or platform.machine()}, "
@@ -74,14 +96,13 @@ def main() -> int:
         "",
         "| Init input | depth error mean (mm) | sd | mean abs | correlation with true depth |",
         "|---|---:|---:|---:|---:|",
-        _summary("simulated DSA MAP (what registration sees)", on_map - truth, truth, on_map),
-        _summary("DRR at the true pose", on_drr - truth, truth, on_drr),
+        *(_summary(name, est - truth, truth, est) for name, est in zip(INPUTS, estimates)),
         "",
-        "| seed | view | true depth (mm) | Init on MAP (error) | Init on DRR (error) |",
-        "|---:|---|---:|---:|---:|",
+        "| seed | view | true depth (mm) | Init on MAP (error) | on DRR | on masked DRR | on clipped DRR | on DRR through the chain |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|",
         *rows,
     ]
-    publish("\n".join(lines), args.doc, "Init depth: simulated DSA MAP vs DRR",
+    publish("\n".join(lines), args.doc, "Init depth: simulated DSA MAP vs DRR, and which preprocessing step makes the difference",
             "`benchmarks/bench_init_depth.py`; what the numbers mean is in `docs/benchmark/bench.md` (Reading these numbers).")
     return 0
 
