@@ -452,6 +452,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         models=None,
         overridesPA: Optional[dict] = None,
         overridesLAT: Optional[dict] = None,
+        modelClipPercentiles: Optional[tuple] = None,
         progress: Optional[Callable[[str, float, str], None]] = None,
         cancel: Optional[Callable[[], bool]] = None,
     ) -> dict:
@@ -459,7 +460,8 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         volume nodes). Input nodes are not modified. Returns the output nodes by name:
         ``{pa,lat}{Pose,Camera,Frustum,DSA,DSABrowser,MAP,Projection}``, ``table``, ``result``
         (the library's in-memory result) and ``record`` (the JSON-ready result record that
-        ``geopose register`` writes as result.json)."""
+        ``geopose register`` writes as result.json). ``modelClipPercentiles`` (lo, hi): the
+        clip of the networks' MAP (default CONVENTIONS 5, 25-75; see the README)."""
         if cta is None or dsaPA is None or dsaLAT is None:
             raise ValueError("register needs cta, dsaPA and dsaLAT nodes")
         if backend not in BACKENDS:
@@ -481,13 +483,16 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         cranium = self.segmentationLabels(craniumMask, cta)[0] if craniumMask is not None else None
         refineSteps = C.GREEDY_MAX_PROPOSALS if refineSteps is None else int(refineSteps)
         iterations = C.TTO_ITERATIONS if iterations is None else int(iterations)
+        clip = C.MAP_CLIP_PERCENTILES if modelClipPercentiles is None else tuple(float(p) for p in modelClipPercentiles)
         notes = []
         if withTorch:
             from geopose.nets import make_predictors
             from geopose.register.pipeline import register_case, resolve_device
             from geopose.register.results import RegistrationOptions
 
-            options = RegistrationOptions(refine_steps=refineSteps, iterations=iterations, device=device)
+            options = RegistrationOptions(
+                refine_steps=refineSteps, iterations=iterations, device=device, model_clip_percentiles=clip
+            )
             dev = resolve_device(device)
             init, refine = make_predictors(
                 models or self.defaultModelsFolder(), backend="torch" if backend == "auto" else backend, device=dev
@@ -506,7 +511,8 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
                     progress("prepare", 0.0, NO_TTO_NOTE)
             result = register_case_numpy(
                 ctaVolume, runs, models=models or self.defaultModelsFolder(), cranium_mask=cranium,
-                segmentation=labels, refine_steps=refineSteps, progress=progress, cancel=cancel,
+                segmentation=labels, refine_steps=refineSteps, model_clip_percentiles=clip, progress=progress,
+                cancel=cancel,
             )
         outputs = self.addResultNodes(ctaVolume, runs, result, labels, segments, notes)
         outputs["result"] = result

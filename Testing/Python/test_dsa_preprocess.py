@@ -179,6 +179,18 @@ def test_preprocess_dsa_end_to_end(photometric):
     assert prep.view_role == "PA" and prep.view_label == C.VIEW_PA
 
 
+def test_a_milder_clip_for_the_networks_keeps_vessels_and_leaves_the_tto_target_alone():
+    run, _, _ = _synthetic_head_run()
+    paper = preprocess_dsa(run, tto_px=60)
+    mild = preprocess_dsa(run, tto_px=60, model_clip_percentiles=(0.0, 100.0))
+    np.testing.assert_array_equal(mild.tto_image, paper.tto_image)
+    np.testing.assert_array_equal(mild.model_mask, paper.model_mask)
+    inside = paper.model_mask > 0
+    # 25-75: head and vessel saturate together; unclipped, the head (40) sits well below the vessel (100)
+    assert np.median(paper.model_image[inside]) > 0.9
+    assert np.median(mild.model_image[inside]) < 0.6 and mild.model_image.max() == pytest.approx(1.0)
+
+
 def test_preprocess_with_given_mask():
     run, head, _ = _synthetic_head_run()
     half = head.copy()

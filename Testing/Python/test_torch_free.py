@@ -191,11 +191,13 @@ try:
 except RuntimeError as exc:
     refused = str(exc)
 messages = []
-out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, iterations=25, progress=lambda s, f, m: messages.append(m))
+out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, iterations=25, modelClipPercentiles=(2, 98),
+                     progress=lambda s, f, m: messages.append(m))
 json.dump({
     "refused": refused,
     "messages": messages,
     "notes": out["record"]["notes"],
+    "options": out["record"]["options"],
     "device": out["record"]["environment"]["device"],
     "torch_version": out["record"]["environment"]["torch"],
     "pose_ras": {k: mrml.transform_matrix(out[f"{k}Pose"]).tolist() for k in ("pa", "lat")},
@@ -268,3 +270,4 @@ def test_slicer_logic_without_torch_runs_init_and_refine(phantom_folder):
     for key in ("pa", "lat"):
         np.testing.assert_allclose(out["pose_ras"][key], out["record_pose_ras"][key], atol=1e-6)
     assert out["table_rows"] == 2
+    assert out["options"]["model_clip_percentiles"] == [2.0, 98.0] and out["options"]["iterations"] == 0

@@ -44,6 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
     p.add_argument("--tto-px", type=int, help="TTO image size (default: 256 on CUDA, 128 on CPU)")
+    p.add_argument("--model-clip-percentiles", type=float, nargs=2, metavar=("LO", "HI"),
+                   default=list(C.MAP_CLIP_PERCENTILES), help="percentiles the networks' MAP is clipped to (TTO keeps 25 75)")
     p.set_defaults(func=run)
 
 
@@ -69,7 +71,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"seeds {overlap[:5]} were used to train these models: choose --seed-start beyond them")
     device = resolve_device(args.device)
     init, refine = make_predictors(model_files(models_dir), backend=args.backend, device=device)
-    settings = BenchSettings(args.iterations, args.long_iterations, device=str(device), tto_px=args.tto_px)
+    settings = BenchSettings(args.iterations, args.long_iterations, device=str(device), tto_px=args.tto_px,
+                             model_clip_percentiles=tuple(args.model_clip_percentiles))
     n_long = args.subjects if args.long_subjects is None else args.long_subjects
     cases: list[dict] = []
     t_start = time.perf_counter()

@@ -38,6 +38,7 @@ class BenchSettings:
     refine_steps: int = C.GREEDY_MAX_PROPOSALS
     device: str = "auto"
     tto_px: int | None = None
+    model_clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
 
 
 def row_names(settings: BenchSettings, long: bool = True) -> list[str]:
@@ -94,7 +95,8 @@ def evaluate_case(
     case: BenchCase, init: InitPredictor, refine: RefinePredictor, settings: BenchSettings, *, long: bool = True
 ) -> dict:
     """All rows for ``case``: ``{"rows": {row: {view: metrics}}, "views": ..., "runtimes_s": ..., "curves": ...}``."""
-    options = RegistrationOptions(refine_steps=settings.refine_steps, device=settings.device, tto_px=settings.tto_px)
+    options = RegistrationOptions(refine_steps=settings.refine_steps, device=settings.device, tto_px=settings.tto_px,
+                                  model_clip_percentiles=settings.model_clip_percentiles)
     t0 = time.perf_counter()
     prep = prepare_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels, options=options)
     times = {"prepare": time.perf_counter() - t0}

@@ -215,12 +215,19 @@ def _finish(clipped: np.ndarray, mask: np.ndarray, source: Detector, target: Det
 
 
 def preprocess_dsa(
-    run: DSARun, *, mask: np.ndarray | None = None, invert: bool | None = None, tto_px: int = TTO_TARGET_PX
+    run: DSARun,
+    *,
+    mask: np.ndarray | None = None,
+    invert: bool | None = None,
+    tto_px: int = TTO_TARGET_PX,
+    model_clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES,
 ) -> PreparedDSA:
     """CONVENTIONS 5 on one run: MAP, cranium mask (``mask`` overrides; native size),
     clipping, resampling, masking, bilateral (on the 8-bit scale, :func:`intensity_unit`)
     and min-max, for the model geometry and for the TTO geometry (acquisition SDD,
     ``tto_px`` pixels along the longer side). ``invert`` as in :meth:`DSARun.attenuation`.
+    ``model_clip_percentiles`` changes the clip of the networks' image only (the TTO
+    target keeps CONVENTIONS 5); see ``docs/init_depth.md``.
     """
     image = temporal_map(run.attenuation(invert))
     if mask is None:
@@ -234,7 +241,8 @@ def preprocess_dsa(
     clipped = clip_intensities(image, mask)
     unit = intensity_unit(run)
     model = Detector.model()
-    model_image, model_mask = _finish(clipped, mask, run.detector, model, unit)
+    model_clipped = clip_intensities(image, mask, model_clip_percentiles)
+    model_image, model_mask = _finish(model_clipped, mask, run.detector, model, unit)
     h, w = run.detector.shape
     scale = tto_px / max(h, w)
     tto = run.detector.resized(max(1, round(h * scale)), max(1, round(w * scale)))

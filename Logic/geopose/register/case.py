@@ -8,6 +8,7 @@ from typing import Mapping
 
 import numpy as np
 
+from .. import contract as C
 from ..cta import cranium_mask_from_cta, vessel_mask_from_cta
 from ..dsa import LAT_ROLE, PA_ROLE, DSARun, PreparedDSA, preprocess_dsa
 from ..volume import Volume
@@ -75,17 +76,18 @@ def silhouette_dice(silhouette: np.ndarray, reference: np.ndarray) -> float:
 
 def prepare_views(
     dsa: Mapping[str, DSARun], *, tto_px: int, dsa_masks: Mapping[str, np.ndarray] | None = None,
-    monitor: Monitor | None = None,
+    monitor: Monitor | None = None, model_clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES,
 ) -> dict[str, PreparedDSA]:
-    """Preprocess ``{"pa": run, "lat": run}`` (CONVENTIONS 5), TTO targets at ``tto_px``;
-    the 'pa' run must look PA and the 'lat' run lateral by their primary angles."""
+    """Preprocess ``{"pa": run, "lat": run}`` (CONVENTIONS 5), TTO targets at ``tto_px``,
+    the networks' images clipped to ``model_clip_percentiles``; the 'pa' run must look PA
+    and the 'lat' run lateral by their primary angles."""
     monitor = monitor or Monitor()
     check_view_keys(dsa)
     prepared: dict[str, PreparedDSA] = {}
     for i, key in enumerate(VIEW_KEYS):
         monitor.step("prepare", (i + 1) / 3, f"DSA {key.upper()}")
         kwargs = {"mask": dsa_masks[key]} if dsa_masks and key in dsa_masks else {}
-        prepared[key] = preprocess_dsa(dsa[key], tto_px=tto_px, **kwargs)
+        prepared[key] = preprocess_dsa(dsa[key], tto_px=tto_px, model_clip_percentiles=model_clip_percentiles, **kwargs)
     if prepared["pa"].view_role != PA_ROLE or prepared["lat"].view_role != LAT_ROLE:
         raise ValueError(
             f"the 'pa' run looks {prepared['pa'].view_role} and the 'lat' run {prepared['lat'].view_role} by their "

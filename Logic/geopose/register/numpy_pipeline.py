@@ -87,6 +87,7 @@ def register_case_numpy(
     refine_steps: int = C.GREEDY_MAX_PROPOSALS,
     render_px: int = DEFAULT_RENDER_PX,
     tto_px: int = TTO_PX_CPU,
+    model_clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES,
     progress: ProgressCallback | None = None,
     cancel: CancelCheck | None = None,
 ) -> CaseRegistration:
@@ -95,7 +96,7 @@ def register_case_numpy(
     ``models``: a model folder whose manifest lists ONNX graphs (default: the shipped
     models), ``{"init": graph, "refine": graph}``, or runners from ``onnx_predictors``.
     ``tto_px`` sizes the acquisition-geometry image on which the final mNCC and the
-    silhouette Dice are scored. Every pose is ``(1, 4, 4)`` camera-to-centred-native (mm).
+    silhouette Dice are scored; ``model_clip_percentiles`` as in :class:`RegistrationOptions`. Every pose is ``(1, 4, 4)`` camera-to-centred-native (mm).
     """
     monitor = Monitor(progress, cancel)
     times: dict[str, float] = {}
@@ -109,7 +110,8 @@ def register_case_numpy(
     monitor.step("prepare", 0.0, "CTA masks")
     labels, labels_source = case_labels(cta, cranium_mask, segmentation)
     drr = NumpyDRR.from_volume(cta, Detector.model(), labels=labels, label_groups=LABEL_GROUPS)
-    prepared = prepare_views(dsa, tto_px=tto_px, dsa_masks=dsa_masks, monitor=monitor)
+    prepared = prepare_views(dsa, tto_px=tto_px, dsa_masks=dsa_masks, monitor=monitor,
+                             model_clip_percentiles=model_clip_percentiles)
     times["prepare"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -145,5 +147,6 @@ def register_case_numpy(
         outcomes[key] = ViewOutcome(key, prepared[key], inits[key], refined[key], final, score, dice, assess(score, dice, 0.0, 0.0))
     times["total"] = sum(times.values())
     monitor.step("done", 1.0, "registration finished (no test-time optimisation: it needs PyTorch)")
-    options = RegistrationOptions(refine_steps=refine_steps, iterations=0, tto_px=tto_px, device="cpu")
+    options = RegistrationOptions(refine_steps=refine_steps, iterations=0, tto_px=tto_px, device="cpu",
+                                  model_clip_percentiles=tuple(model_clip_percentiles))
     return CaseRegistration(cta, labels, labels_source, calibration, outcomes, None, times, DEVICE_LABEL, options, drr)

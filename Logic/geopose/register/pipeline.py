@@ -100,7 +100,8 @@ def prepare_case(
     labels, labels_source = case_labels(cta, cranium_mask, segmentation)
     drr = DRR.from_volume(cta, Detector.model(), labels=labels, label_groups=LABEL_GROUPS, device=device)
     tto_px = options.tto_px or (TTO_PX_CUDA if device.type == "cuda" else TTO_PX_CPU)
-    prepared = prepare_views(dsa, tto_px=tto_px, dsa_masks=dsa_masks, monitor=monitor)
+    prepared = prepare_views(dsa, tto_px=tto_px, dsa_masks=dsa_masks, monitor=monitor,
+                             model_clip_percentiles=options.model_clip_percentiles)
     return PreparedCase(labels, labels_source, drr, prepared, device)
 
 

@@ -37,6 +37,8 @@ class RegistrationOptions:
     tto_px: int | None = None  # None: the model resolution on a GPU, half of it on a CPU
     biplanar: bool = False
     device: str = "auto"
+    #: Percentiles the networks' MAP is clipped to (the TTO target keeps CONVENTIONS 5).
+    model_clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
 
 
 @dataclass
