@@ -483,7 +483,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         cranium = self.segmentationLabels(craniumMask, cta)[0] if craniumMask is not None else None
         refineSteps = C.GREEDY_MAX_PROPOSALS if refineSteps is None else int(refineSteps)
         iterations = C.TTO_ITERATIONS if iterations is None else int(iterations)
-        clip = C.MAP_CLIP_PERCENTILES if modelClipPercentiles is None else tuple(float(p) for p in modelClipPercentiles)
+        clip = C.MAP_CLIP_PERCENTILES if modelClipPercentiles is None else modelClipPercentiles
         notes = []
         if withTorch:
             from geopose.nets import make_predictors

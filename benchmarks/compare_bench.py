@@ -12,12 +12,17 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 from pathlib import Path
 
-VIEWS = ("pa", "lat")
-ROWS = ("Init", "Init + Refine x1", "Init + greedy Refine", "Init + 25 TTO", "Init + Refine x1 + 25 TTO",
-        "Init + greedy Refine + 25 TTO", "native + 25 TTO")
-SHORT_SUFFIX = "-short"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
+
+from geopose.bench import BenchSettings, row_names  # noqa: E402
+from geopose.bench.cli import SHORT_CASE_SUFFIX  # noqa: E402
+from geopose.register.case import VIEW_KEYS as VIEWS  # noqa: E402
+
+#: The rows compared: the paper's table without the native start and the long TTO budget.
+ROWS = tuple(r for r in row_names(BenchSettings(), long=False) if r != "native")
 
 
 def load_cases(folders: list[Path]) -> dict[str, dict]:
@@ -28,7 +33,7 @@ def load_cases(folders: list[Path]) -> dict[str, dict]:
         summary = folder / "bench.json"
         found = json.loads(summary.read_text())["cases"] if summary.is_file() else [
             json.loads(p.read_text()) for p in sorted((folder / "cases").glob("phantom-*.json"))]
-        cases.update({c["case"].removesuffix(SHORT_SUFFIX): c for c in found})
+        cases.update({c["case"].removesuffix(SHORT_CASE_SUFFIX): c for c in found})
     return cases
 
 

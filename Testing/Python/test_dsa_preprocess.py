@@ -20,6 +20,7 @@ from geopose.dsa import (
     temporal_map,
 )
 from geopose.geometry import CArmAngles, Detector
+from geopose.register import RegistrationOptions
 
 
 def _disc(h: int, w: int, centre: tuple[float, float], radius: float) -> np.ndarray:
@@ -189,6 +190,15 @@ def test_a_milder_clip_for_the_networks_keeps_vessels_and_leaves_the_tto_target_
     # 25-75: head and vessel saturate together; unclipped, the head (40) sits well below the vessel (100)
     assert np.median(paper.model_image[inside]) > 0.9
     assert np.median(mild.model_image[inside]) < 0.6 and mild.model_image.max() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("bad", [(75.0, 25.0), (-1.0, 50.0), (10.0, 101.0), (5.0,), "2-98"])
+def test_bad_clip_percentiles_are_refused_with_the_rule(bad):
+    run, _, _ = _synthetic_head_run()
+    with pytest.raises(ValueError, match="clip percentiles"):
+        preprocess_dsa(run, tto_px=60, model_clip_percentiles=bad)
+    with pytest.raises(ValueError, match="clip percentiles"):
+        RegistrationOptions(model_clip_percentiles=bad)
 
 
 def test_preprocess_with_given_mask():

@@ -18,6 +18,7 @@ import torch
 
 from .. import __version__
 from .. import contract as C
+from ..dsa import check_clip_percentiles, model_clip_arg
 from ..nets import make_predictors
 from ..nets.model_io import model_files
 from ..register import resolve_device
@@ -28,6 +29,9 @@ from .run import BenchSettings, evaluate_case, row_names
 
 #: First held-out phantom seed (training populations use small seeds; checked at run time).
 DEFAULT_SEED_START = 5000
+
+#: Case-name suffix of subjects run without the long TTO budget.
+SHORT_CASE_SUFFIX = "-short"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,8 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
     p.add_argument("--tto-px", type=int, help="TTO image size (default: 256 on CUDA, 128 on CPU)")
-    p.add_argument("--model-clip-percentiles", type=float, nargs=2, metavar=("LO", "HI"),
-                   default=list(C.MAP_CLIP_PERCENTILES), help="percentiles the networks' MAP is clipped to (TTO keeps 25 75)")
+    model_clip_arg(p)
     p.set_defaults(func=run)
 
 
@@ -72,14 +75,14 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     init, refine = make_predictors(model_files(models_dir), backend=args.backend, device=device)
     settings = BenchSettings(args.iterations, args.long_iterations, device=str(device), tto_px=args.tto_px,
-                             model_clip_percentiles=tuple(args.model_clip_percentiles))
+                             model_clip_percentiles=check_clip_percentiles(args.model_clip_percentiles))
     n_long = args.subjects if args.long_subjects is None else args.long_subjects
     cases: list[dict] = []
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for i, seed in enumerate(seeds):
             long = i < n_long
-            tag = f"phantom-{seed}{'' if long else '-short'}"
+            tag = f"phantom-{seed}{'' if long else SHORT_CASE_SUFFIX}"
             result = _load_or_run(
                 out / "cases" / f"{tag}.json",
                 lambda: evaluate_case(phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm), init, refine, settings, long=long),

@@ -20,6 +20,7 @@ from .run import DSAInputError, DSARun
 
 __all__ = [
     "PreparedDSA",
+    "check_clip_percentiles",
     "temporal_map",
     "dsa_cranium_mask",
     "clip_intensities",
@@ -68,6 +69,18 @@ def dsa_cranium_mask(image: np.ndarray) -> np.ndarray:
     return _largest_component_filled(sitk.GetArrayFromImage(otsu) > 0)
 
 
+def check_clip_percentiles(percentiles) -> tuple[float, float]:
+    """``(lo, hi)`` with ``0 <= lo < hi <= 100`` as floats, or a :class:`ValueError` naming the remedy."""
+    try:
+        lo, hi = (float(p) for p in percentiles)
+    except (TypeError, ValueError):
+        raise ValueError(f"clip percentiles must be two numbers (lo, hi), got {percentiles!r}") from None
+    if not 0.0 <= lo < hi <= 100.0:
+        raise ValueError(f"clip percentiles ({lo:g}, {hi:g}) must satisfy 0 <= lo < hi <= 100, e.g. (2, 98) or the "
+                         f"default {C.MAP_CLIP_PERCENTILES}")
+    return lo, hi
+
+
 def clip_intensities(
     image: np.ndarray, support: np.ndarray | None = None, percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
 ) -> np.ndarray:
@@ -81,6 +94,7 @@ def clip_intensities(
     75th percentile (vessels, skull rim) saturates: the result is the head *silhouette*
     the paper describes, not a vessel image.
     """
+    percentiles = check_clip_percentiles(percentiles)
     image = np.asarray(image, dtype=np.float32)
     support = image != 0 if support is None else np.asarray(support) > 0
     if support.shape != image.shape:
@@ -241,7 +255,8 @@ def preprocess_dsa(
     clipped = clip_intensities(image, mask)
     unit = intensity_unit(run)
     model = Detector.model()
-    model_clipped = clip_intensities(image, mask, model_clip_percentiles)
+    same = check_clip_percentiles(model_clip_percentiles) == C.MAP_CLIP_PERCENTILES
+    model_clipped = clipped if same else clip_intensities(image, mask, model_clip_percentiles)
     model_image, model_mask = _finish(model_clipped, mask, run.detector, model, unit)
     h, w = run.detector.shape
     scale = tto_px / max(h, w)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..cta import load_cta
 from ..cta.io import file_sha256
-from ..dsa import geometry_override_args, geometry_overrides_from_args, read_dsa
+from ..dsa import geometry_override_args, geometry_overrides_from_args, model_clip_arg, read_dsa
 from ..nets import make_predictors
 from ..nets.model_io import model_files, read_model_header
 from ..resources import default_models_dir
@@ -34,9 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iterations", type=int, default=C.TTO_ITERATIONS, help="test-time optimisation steps (0: none)")
     p.add_argument("--refine-steps", type=int, default=C.GREEDY_MAX_PROPOSALS, help="greedy refinement proposals")
     p.add_argument("--tto-px", type=int, help="TTO image size (pixels along the longer side)")
-    p.add_argument("--model-clip-percentiles", type=float, nargs=2, metavar=("LO", "HI"),
-                   default=list(C.MAP_CLIP_PERCENTILES),
-                   help="percentiles the networks' MAP is clipped to (the TTO target keeps CONVENTIONS 5)")
+    model_clip_arg(p)
     p.add_argument("--biplanar", action="store_true", help="add the biplanar orthogonality term to the TTO")
     p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
     p.add_argument("--out", required=True, help="output folder (result.json, overlay PNGs)")
@@ -51,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models, backend=args.backend,
         hu_offset=args.hu_offset,
         options=RegistrationOptions(args.refine_steps, args.iterations, args.tto_px, args.biplanar, args.device,
-                                    tuple(args.model_clip_percentiles)),
+                                    args.model_clip_percentiles),
         overrides={k: geometry_overrides_from_args(args, prefix=f"{k}-") for k in ("pa", "lat")},
     )
     print_summary(record, Path(args.out))

@@ -96,8 +96,11 @@ def register_case_numpy(
     ``models``: a model folder whose manifest lists ONNX graphs (default: the shipped
     models), ``{"init": graph, "refine": graph}``, or runners from ``onnx_predictors``.
     ``tto_px`` sizes the acquisition-geometry image on which the final mNCC and the
-    silhouette Dice are scored; ``model_clip_percentiles`` as in :class:`RegistrationOptions`. Every pose is ``(1, 4, 4)`` camera-to-centred-native (mm).
+    silhouette Dice are scored; ``model_clip_percentiles`` as in :class:`RegistrationOptions`.
+    Every pose is ``(1, 4, 4)`` camera-to-centred-native (mm).
     """
+    options = RegistrationOptions(refine_steps=refine_steps, iterations=0, tto_px=tto_px, device="cpu",
+                                  model_clip_percentiles=model_clip_percentiles)
     monitor = Monitor(progress, cancel)
     times: dict[str, float] = {}
     if isinstance(models, tuple):
@@ -111,7 +114,7 @@ def register_case_numpy(
     labels, labels_source = case_labels(cta, cranium_mask, segmentation)
     drr = NumpyDRR.from_volume(cta, Detector.model(), labels=labels, label_groups=LABEL_GROUPS)
     prepared = prepare_views(dsa, tto_px=tto_px, dsa_masks=dsa_masks, monitor=monitor,
-                             model_clip_percentiles=model_clip_percentiles)
+                             model_clip_percentiles=options.model_clip_percentiles)
     times["prepare"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -147,6 +150,4 @@ def register_case_numpy(
         outcomes[key] = ViewOutcome(key, prepared[key], inits[key], refined[key], final, score, dice, assess(score, dice, 0.0, 0.0))
     times["total"] = sum(times.values())
     monitor.step("done", 1.0, "registration finished (no test-time optimisation: it needs PyTorch)")
-    options = RegistrationOptions(refine_steps=refine_steps, iterations=0, tto_px=tto_px, device="cpu",
-                                  model_clip_percentiles=tuple(model_clip_percentiles))
     return CaseRegistration(cta, labels, labels_source, calibration, outcomes, None, times, DEVICE_LABEL, options, drr)

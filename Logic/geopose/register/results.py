@@ -14,6 +14,7 @@ import numpy as np
 
 from .. import contract as C
 from ..dsa import PreparedDSA
+from ..dsa import check_clip_percentiles
 from ..volume import Volume
 from .quality import Quality
 
@@ -39,6 +40,9 @@ class RegistrationOptions:
     device: str = "auto"
     #: Percentiles the networks' MAP is clipped to (the TTO target keeps CONVENTIONS 5).
     model_clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
+
+    def __post_init__(self) -> None:
+        self.model_clip_percentiles = check_clip_percentiles(self.model_clip_percentiles)
 
 
 @dataclass
