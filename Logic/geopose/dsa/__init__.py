@@ -10,7 +10,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "PreparedDSA", "bilateral", "check_clip_percentiles", "clip_intensities", "dsa_cranium_mask", "intensity_unit", "minmax",
             "preprocess_dsa", "resample_to_detector", "resample_to_model_sdd", "temporal_map",
         ),
-        "readers": ("read_dsa", "sidecar_path"),
+        "readers": ("read_dsa", "run_from_geometry", "sidecar_path"),
         "run": ("GEOMETRY_KEYS", "LAT_ROLE", "PA_ROLE", "DSAInputError", "DSARun"),
         "writers": ("quantize_frames", "write_dsa_dicom", "write_dsa_nifti"),
     },

@@ -37,7 +37,7 @@ from ..cta.io import file_sha256
 from ..geometry.detector import CArmAngles, Detector
 from .run import GEOMETRY_KEYS, GEOMETRY_SOURCES, REQUIRED_GEOMETRY_KEYS, DSAInputError, DSARun, cli_option
 
-__all__ = ["read_dsa", "sidecar_path", "NIFTI_EXTENSIONS", "SIDECAR_KEYS"]
+__all__ = ["read_dsa", "run_from_geometry", "sidecar_path", "NIFTI_EXTENSIONS", "SIDECAR_KEYS"]
 
 NIFTI_EXTENSIONS = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 #: JSON sidecar keys: the geometry keys plus the photometric interpretation of the stored frames.
@@ -117,6 +117,24 @@ def _assemble(
     angles = CArmAngles(values["primary_deg"], values["secondary_deg"], values["sid_mm"], values["sod_mm"])
     metadata["geometry_sources"] = {k: sources.get(k, "file") for k in values}
     return DSARun(frames, detector, angles, values.get("frame_time_ms"), metadata)
+
+
+def run_from_geometry(
+    frames: np.ndarray, geometry: dict[str, Any], *, name: str, source: str, metadata: dict | None = None
+) -> DSARun:
+    """A run from frames ``(T, H, W)`` and geometry values (``GEOMETRY_KEYS`` names, mm / deg) that
+    did not come from a file (e.g. a Slicer node's attributes): the same checks as the file readers.
+    ``name`` names the input in messages, ``source`` is recorded as every value's origin."""
+    frames = np.asarray(frames, dtype=np.float32)
+    if frames.ndim == 2:
+        frames = frames[None]
+    if frames.ndim != 3:
+        raise DSAInputError(f"{name}: DSA frames must be (T, H, W), got shape {frames.shape}")
+    unknown = sorted(set(geometry) - set(GEOMETRY_KEYS))
+    if unknown:
+        raise DSAInputError(f"{name}: unknown geometry key(s) {unknown}; valid keys: {', '.join(GEOMETRY_KEYS)}")
+    found = {k: v for k, v in geometry.items() if v is not None}
+    return _assemble(frames, found, {k: source for k in found}, {}, name, lambda k: f"'{k}'", dict(metadata or {}))
 
 
 # ------------------------------------------------------------------------- DICOM
