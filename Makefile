@@ -9,7 +9,7 @@ $(BIN)/geopose: pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e ".[test]"
+	$(BIN)/python -m pip install -q -e ".[torch,test]"
 	touch $@
 
 setup: $(BIN)/geopose

@@ -62,7 +62,6 @@ REQUIREMENTS = (
 )
 #: Network backends: auto = torch when installed, else onnxruntime with the numpy renderer.
 BACKENDS = ("auto", "torch", "onnxruntime")
-NO_TTO_NOTE = "PyTorch is not installed: Init + Refine ran on onnxruntime; test-time optimisation needs PyTorch and was skipped"
 VIEW_KEYS = ("pa", "lat")
 VIEW_TITLES = {"pa": "PA", "lat": "LAT"}
 #: Geometry override keys (``geopose.dsa.GEOMETRY_KEYS`` names) shown in the panel.
@@ -390,7 +389,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         its nominal detector plane (C-arm angles about the CTA grid centre)."""
         from geopose import mrml
         from geopose.dsa import read_dsa
-        from geopose.geometry.numpy_poses import pose_from_carm_angles
+        from geopose.geometry.poses import pose_from_carm_angles
 
         run = read_dsa(path, **overrides)
         pose = pose_from_carm_angles(run.angles)
@@ -464,60 +463,32 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         clip of the networks' MAP (default CONVENTIONS 5, 25-75; see the README)."""
         if cta is None or dsaPA is None or dsaLAT is None:
             raise ValueError("register needs cta, dsaPA and dsaLAT nodes")
-        if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        withTorch = self.torchAvailable()
-        if backend == "torch" and not withTorch:
-            raise RuntimeError(
-                "backend 'torch' was asked for but PyTorch is not installed: install the PyTorch extension (or run "
-                "GeoPoseLogic().ensureDependencies(torch=True) from the Python console), or use backend='onnxruntime' "
-                "for Init + Refine without test-time optimisation"
-            )
         from geopose import contract as C
         from geopose import mrml
+        from geopose.options import RegistrationOptions
+        from geopose.register.pipeline import register_case
         from geopose.register.record import build_record
 
+        options = RegistrationOptions(
+            backend=backend, device=device,
+            refine_steps=C.GREEDY_MAX_PROPOSALS if refineSteps is None else refineSteps,
+            iterations=C.TTO_ITERATIONS if iterations is None else iterations,
+            model_clip_percentiles=modelClipPercentiles,
+        )
         ctaVolume = mrml.volume_from_node(cta)
         runs = {"pa": self.dsaRunFromNode(dsaPA, overridesPA), "lat": self.dsaRunFromNode(dsaLAT, overridesLAT)}
         labels, segments = self.segmentationLabels(segmentation, cta)
         cranium = self.segmentationLabels(craniumMask, cta)[0] if craniumMask is not None else None
-        refineSteps = C.GREEDY_MAX_PROPOSALS if refineSteps is None else int(refineSteps)
-        iterations = C.TTO_ITERATIONS if iterations is None else int(iterations)
-        clip = C.MAP_CLIP_PERCENTILES if modelClipPercentiles is None else modelClipPercentiles
-        notes = []
-        if withTorch:
-            from geopose.nets import make_predictors
-            from geopose.register.pipeline import register_case, resolve_device
-            from geopose.register.results import RegistrationOptions
-
-            options = RegistrationOptions(
-                refine_steps=refineSteps, iterations=iterations, device=device, model_clip_percentiles=clip
-            )
-            dev = resolve_device(device)
-            init, refine = make_predictors(
-                models or self.defaultModelsFolder(), backend="torch" if backend == "auto" else backend, device=dev
-            )
-            result = register_case(
-                ctaVolume, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=labels,
-                options=options, progress=progress, cancel=cancel,
-            )
-        else:
-            from geopose.register.numpy_pipeline import register_case_numpy
-
-            if iterations > 0:
-                notes.append(NO_TTO_NOTE)
-                logging.warning(NO_TTO_NOTE)
-                if progress is not None:
-                    progress("prepare", 0.0, NO_TTO_NOTE)
-            result = register_case_numpy(
-                ctaVolume, runs, models=models or self.defaultModelsFolder(), cranium_mask=cranium,
-                segmentation=labels, refine_steps=refineSteps, model_clip_percentiles=clip, progress=progress,
-                cancel=cancel,
-            )
+        result = register_case(
+            ctaVolume, runs, models=models or self.defaultModelsFolder(), options=options, cranium_mask=cranium,
+            segmentation=labels, progress=progress, cancel=cancel,
+        )
+        notes = result.notes
+        for note in notes:
+            logging.warning(note)
         outputs = self.addResultNodes(ctaVolume, runs, result, labels, segments, notes)
         outputs["result"] = result
         outputs["record"] = build_record(result, runs, inputs={"cta": {"node": cta.GetName()}})
-        outputs["record"]["notes"] = notes
         return outputs
 
     def segmentationLabels(self, segmentation, referenceNode):
@@ -565,7 +536,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
             rows.append(row)
         for row in rows:
             row.update({f"runtime {stage} (s)": float(t) for stage, t in result.runtimes_s.items()})
-            row["device"] = str(result.device)
+            row["device"] = f"{result.engine['backend']} on {result.engine['device']}"
             row["notes"] = "; ".join(notes)
         out["table"] = mrml.result_table_node(scene, rows, "GeoPose results")
         return out

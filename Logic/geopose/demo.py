@@ -14,7 +14,7 @@ from .cta import load_cta, save_volume
 from .phantom.cli import write_phantom
 from .phantom.labels import vessel_mask
 from .register.cli import print_summary, register_files
-from .register.results import RegistrationOptions
+from .options import BACKENDS, RegistrationOptions
 
 DEMO_SEED = 20260
 
@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=DEMO_SEED, help="phantom subject seed")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
     p.add_argument("--iterations", type=int, default=C.TTO_ITERATIONS, help="test-time optimisation steps")
-    p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch")
+    p.add_argument("--backend", choices=BACKENDS, default="auto", help="auto, torch or onnxruntime")
     p.set_defaults(func=run)
 
 
@@ -39,9 +39,8 @@ def run(args: argparse.Namespace) -> int:
     save_volume(labels.like(vessel_mask(labels.array).astype("uint8")), case / "vessels.nii.gz")
     print("[2/2] registering the CTA to the PA + lateral DSA pair (vessel segmentation: the phantom's arteries)")
     record = register_files(
-        case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", out, backend=args.backend,
-        segmentation=case / "vessels.nii.gz",
-        options=RegistrationOptions(iterations=args.iterations, device=args.device),
+        case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", out, segmentation=case / "vessels.nii.gz",
+        options=RegistrationOptions(iterations=args.iterations, device=args.device, backend=args.backend),
     )
     print_summary(record, out)
     return 0

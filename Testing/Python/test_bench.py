@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from geopose.options import RegistrationOptions
 from geopose.bench import BenchSettings, convergence_figure, markdown, row_names, seed_range, summarise, training_seeds
 from geopose.cli import main
 
@@ -68,7 +69,7 @@ def test_convergence_figure_is_written(tmp_path):
 
 
 def test_rows_follow_the_paper_table():
-    rows = row_names(BenchSettings(iterations=25, long_iterations=400))
+    rows = row_names(BenchSettings(RegistrationOptions(iterations=25), long_iterations=400))
     assert rows[:4] == ["native", "Init", "Init + Refine x1", "Init + greedy Refine"]
     assert rows[4:8] == [r + " + 25 TTO" for r in rows[:4]]
     assert rows[-1] == "native + 400 TTO"
@@ -93,7 +94,7 @@ def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     assert code == 0
     data = json.loads((out / "bench.json").read_text())
     case = data["cases"][0]
-    assert set(case["rows"]) == set(row_names(BenchSettings(iterations=2, long_iterations=3)))
+    assert set(case["rows"]) == set(row_names(BenchSettings(RegistrationOptions(iterations=2), long_iterations=3)))
     for row in case["rows"].values():
         for metrics in row.values():
             assert metrics["mpcd_mm"] >= 0 and -1 <= metrics["ncc"] <= 1

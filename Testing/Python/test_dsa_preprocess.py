@@ -20,7 +20,7 @@ from geopose.dsa import (
     temporal_map,
 )
 from geopose.geometry import CArmAngles, Detector
-from geopose.register import RegistrationOptions
+from geopose.options import RegistrationOptions
 
 
 def _disc(h: int, w: int, centre: tuple[float, float], radius: float) -> np.ndarray:

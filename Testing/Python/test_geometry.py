@@ -1,4 +1,5 @@
-"""Rigid algebra, the isopose table of CONVENTIONS.md, DICOM angles, projection."""
+"""Rigid algebra (numpy, and the torch twin it must equal), the isopose table of
+docs/conventions.md, DICOM angles, projection, frames."""
 
 from __future__ import annotations
 
@@ -10,24 +11,30 @@ import torch
 
 from geopose import contract as C
 from geopose.geometry import (
+    AP_REORIENT,
     CArmAngles,
     Detector,
     RigidTransform,
-    axis_angle_to_matrix,
-    backproject_pixels,
     carm_angles_from_pose,
-    euler_zyx_to_matrix,
+    invert,
     isopose,
-    matrix_to_axis_angle,
-    matrix_to_euler_zyx,
-    params_from_pose,
     pose_from_carm_angles,
-    pose_from_params,
     pose_to_patient,
     pose_from_patient,
     project_points,
+    project_points_tensor,
+    ray_points_tensor,
     source_and_detector_points,
     view_from_primary_angle,
+)
+from geopose.geometry import poses as N
+from geopose.geometry.rigid import (
+    axis_angle_to_matrix,
+    euler_zyx_to_matrix,
+    matrix_to_axis_angle,
+    matrix_to_euler_zyx,
+    params_from_pose,
+    pose_from_params,
 )
 from geopose.volume import Volume
 
@@ -98,21 +105,24 @@ ISOPOSE_TABLE = {
 
 @pytest.mark.parametrize("view", [C.VIEW_LAT_MINUS, C.VIEW_PA, C.VIEW_LAT_PLUS])
 def test_isopose_table(view):
-    src_ref, det_ref, row0_dir, col0_dir = (torch.tensor(v, dtype=torch.float64) for v in ISOPOSE_TABLE[view])
+    src_ref, det_ref, row0_dir, col0_dir = (np.asarray(v, dtype=np.float64) for v in ISOPOSE_TABLE[view])
     det = Detector.model()
-    src, pix = source_and_detector_points(isopose(view, dtype=torch.float64), det)
-    assert torch.allclose(src[0], src_ref, atol=1e-9)
+    src, pix = source_and_detector_points(isopose(view), det)
+    np.testing.assert_allclose(src, src_ref, atol=1e-9)
     H, W = det.shape
-    centre = pix[0, H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1].reshape(-1, 3).mean(0)
-    assert torch.allclose(centre, det_ref, atol=1e-9)
+    centre = pix[H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1].reshape(-1, 3).mean(0)
+    np.testing.assert_allclose(centre, det_ref, atol=1e-9)
     # Row 0 lies towards +z; column 0 towards the tabulated direction.
-    row_dir = torch.nn.functional.normalize(pix[0, 0, W // 2] - pix[0, -1, W // 2], dim=0)
-    col_dir = torch.nn.functional.normalize(pix[0, H // 2, 0] - pix[0, H // 2, -1], dim=0)
-    assert torch.allclose(row_dir, row0_dir, atol=1e-9)
-    assert torch.allclose(col_dir, col0_dir, atol=1e-9)
+    unit = lambda v: v / np.linalg.norm(v)  # noqa: E731
+    np.testing.assert_allclose(unit(pix[0, W // 2] - pix[-1, W // 2]), row0_dir, atol=1e-9)
+    np.testing.assert_allclose(unit(pix[H // 2, 0] - pix[H // 2, -1]), col0_dir, atol=1e-9)
     # Detector plane SDD from the source, spacing 1.2 mm.
-    assert torch.isclose((centre - src[0]).norm(), torch.tensor(C.MODEL_SDD_MM, dtype=torch.float64))
-    assert torch.isclose((pix[0, 0, 0] - pix[0, 0, 1]).norm(), torch.tensor(C.MODEL_PIXEL_SPACING_MM, dtype=torch.float64))
+    assert np.linalg.norm(centre - src) == pytest.approx(C.MODEL_SDD_MM)
+    assert np.linalg.norm(pix[0, 0] - pix[0, 1]) == pytest.approx(C.MODEL_PIXEL_SPACING_MM)
+    # The torch rays of the DRR kernel are the same points.
+    src_t, pix_t = ray_points_tensor(torch.as_tensor(isopose(view))[None], det)
+    np.testing.assert_allclose(pix_t[0].numpy(), pix, atol=1e-9)
+    np.testing.assert_allclose(src_t[0].numpy(), src, atol=1e-9)
 
 
 @pytest.mark.parametrize(
@@ -128,46 +138,68 @@ def test_carm_angles_two_way():
     for a in (0.0, -90.0, 90.0, -32.0, 15.0):
         ang = CArmAngles(primary_deg=a, secondary_deg=2.0, sid_mm=det_sdd, sod_mm=720.0)
         T = pose_from_carm_angles(ang)
-        back = carm_angles_from_pose(T, sid_mm=det_sdd)[0]
+        back = carm_angles_from_pose(T, sid_mm=det_sdd)
         assert back.primary_deg == pytest.approx(a, abs=1e-9)
         assert back.secondary_deg == pytest.approx(2.0, abs=1e-9)
         assert back.sod_mm == pytest.approx(720.0)
         src, _ = source_and_detector_points(T, Detector(8, 8, (1.0, 1.0), det_sdd))
-        assert src[0].norm().item() == pytest.approx(720.0)
+        assert np.linalg.norm(src) == pytest.approx(720.0)
     # Primary 0 / SOD 650 is the PA isopose; -90 is LAT+.
     for a, view in ((0.0, C.VIEW_PA), (-90.0, C.VIEW_LAT_PLUS), (90.0, C.VIEW_LAT_MINUS)):
         T = pose_from_carm_angles(CArmAngles(a, 0.0, C.MODEL_SDD_MM, C.SOURCE_TO_ISOCENTER_MM))
-        assert torch.allclose(T.matrix, isopose(view, dtype=torch.float64).matrix, atol=1e-9)
+        np.testing.assert_allclose(T, isopose(view), atol=1e-9)
     # Cranial tilt (positive secondary) moves the detector towards +z (superior).
     T = pose_from_carm_angles(CArmAngles(0.0, 20.0, 1020.0, 650.0))
     _, pix = source_and_detector_points(T, Detector(2, 2, (1.0, 1.0), 1020.0))
-    assert pix[0].reshape(-1, 3)[:, 2].mean() > 100
+    assert pix.reshape(-1, 3)[:, 2].mean() > 100
 
 
-def test_projection_by_hand_and_backprojection():
+def test_projection_by_hand_and_through_the_pixel():
     det = Detector(rows=100, cols=120, spacing_mm=(0.5, 0.4), sdd_mm=1000.0)
-    T = isopose(C.VIEW_PA, dtype=torch.float64)
+    T = isopose(C.VIEW_PA)
     # PA: source at y = +650, detector plane at y = -350; magnification 1000/650 at the isocentre.
-    pts = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 0.0, 13.0], [5.0, 325.0, -4.0]], dtype=torch.float64)
+    pts = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 0.0, 13.0], [5.0, 325.0, -4.0]])
     rc, depth = project_points(T, det, pts)
-    rc = rc[0]
     cr, cc = (100 - 1) / 2, (120 - 1) / 2
     m = 1000.0 / 650.0
-    assert torch.allclose(rc[0], torch.tensor([cr, cc], dtype=torch.float64))
-    assert torch.allclose(rc[1], torch.tensor([cr, cc - 10 * m / 0.4], dtype=torch.float64))  # +x -> towards column 0
-    assert torch.allclose(rc[2], torch.tensor([cr - 13 * m / 0.5, cc], dtype=torch.float64))  # +z -> towards row 0
+    np.testing.assert_allclose(rc[0], [cr, cc])
+    np.testing.assert_allclose(rc[1], [cr, cc - 10 * m / 0.4])  # +x -> towards column 0
+    np.testing.assert_allclose(rc[2], [cr - 13 * m / 0.5, cc])  # +z -> towards row 0
     m2 = 1000.0 / 325.0
-    assert torch.allclose(rc[3], torch.tensor([cr + 4 * m2 / 0.5, cc - 5 * m2 / 0.4], dtype=torch.float64))
-    assert torch.allclose(depth[0, :3], torch.full((3,), 650.0, dtype=torch.float64))
-    # Back-projected rays pass through the points.
-    src, d = backproject_pixels(T, det, rc[None])
-    v = pts - src[0]
-    cross = torch.linalg.cross(v, d[0], dim=-1).norm(dim=-1)
-    assert cross.max() < 1e-9
+    np.testing.assert_allclose(rc[3], [cr + 4 * m2 / 0.5, cc - 5 * m2 / 0.4])
+    np.testing.assert_allclose(depth[:3], 650.0)
+    # Each point lies on the ray from the source through its pixel's point on the detector.
+    M = T @ AP_REORIENT
+    pix_world = det.pixel_to_camera(rc) @ M[:3, :3].T + M[:3, 3]
+    v, d = pts - M[:3, 3], pix_world - M[:3, 3]
+    assert np.linalg.norm(np.cross(v, d / np.linalg.norm(d, axis=1, keepdims=True)), axis=1).max() < 1e-9
+    # Batched poses give the same as one pose at a time, and the torch projection agrees.
+    both, _ = project_points(np.stack((T, isopose(C.VIEW_LAT_PLUS))), det, pts)
+    np.testing.assert_allclose(both[0], rc)
+    np.testing.assert_allclose(both[1], project_points(isopose(C.VIEW_LAT_PLUS), det, pts)[0])
+    rc_t, _ = project_points_tensor(torch.as_tensor(T)[None], det, torch.as_tensor(pts))
+    np.testing.assert_allclose(rc_t[0].numpy(), rc, atol=1e-9)
     # Principal offset shifts the image.
     det2 = Detector(100, 120, (0.5, 0.4), 1000.0, principal_offset_mm=(4.0, 0.0))
     rc2, _ = project_points(T, det2, pts[:1])
-    assert rc2[0, 0, 1] == pytest.approx(cc + 10.0)
+    assert rc2[0, 1] == pytest.approx(cc + 10.0)
+
+
+def test_numpy_pose_algebra_equals_the_torch_twin():
+    g = np.random.default_rng(4)
+    r, t = g.uniform(-2, 2, (16, 3)), g.normal(0, 100, (16, 3))
+    for rotation in ("euler_zyx", "axis_angle"):
+        ours = N.pose_from_params(r, t, rotation=rotation)
+        theirs = pose_from_params(torch.as_tensor(r), torch.as_tensor(t), rotation=rotation).numpy()
+        np.testing.assert_allclose(ours, theirs, atol=1e-12)
+    T = N.pose_from_params(r, t)
+    r2, t2 = N.params_from_pose(T)
+    rt, tt = params_from_pose(torch.as_tensor(T))
+    np.testing.assert_allclose(r2, rt.numpy(), atol=1e-12)
+    np.testing.assert_allclose(t2, tt.numpy(), atol=1e-9)
+    np.testing.assert_allclose(invert(T) @ T, np.broadcast_to(np.eye(4), T.shape), atol=1e-9)
+    np.testing.assert_allclose(N.matrix_to_euler_zyx(N.euler_zyx_to_matrix(r[:, :] * [1, 0.7, 1])), r * [1, 0.7, 1], atol=1e-9)
+    np.testing.assert_allclose(N.rotation_angle_rad(N.axis_angle_to_matrix(np.array([[0.0, 0.3, 0.4]]))), [0.5])
 
 
 def test_intrinsic_matrix_agrees_with_projection():
@@ -194,7 +226,7 @@ def test_centred_and_patient_frames():
     centre_idx = np.array([(30 - 1) / 2, (20 - 1) / 2, (10 - 1) / 2, 1.0])
     assert np.allclose(vol.centre_ras, (aff @ centre_idx)[:3])
     assert np.allclose(vol.ijk_to_centred @ centre_idx, [0, 0, 0, 1])
-    T = isopose(C.VIEW_PA, dtype=torch.float64).matrix[0].numpy()
+    T = isopose(C.VIEW_PA)
     T_ras = pose_to_patient(T, aff, vol.shape_ijk)
     assert np.allclose(T_ras[:3, 3], T[:3, 3] + vol.centre_ras)
     assert np.allclose(pose_from_patient(T_ras, aff, vol.shape_ijk), T)

@@ -9,21 +9,21 @@ import pytest
 import torch
 
 from geopose.contract import MNCC_PATCH_PX, MODEL_SDD_MM
-from geopose.geometry.carm import isopose
-from geopose.geometry.rigid import RigidTransform
+from geopose.geometry.poses import isopose, pose_from_params
 from geopose.metrics import (
     cldice,
     double_geodesic_mm,
     generalized_dice_loss,
-    local_ncc,
     mask_points,
-    mncc,
     mpcd,
-    ncc,
     pose_errors,
     skeletonize,
     view_accuracy,
 )
+from geopose.metrics import similarity as S
+from geopose.metrics.losses import local_ncc_similarity as local_ncc
+from geopose.metrics.losses import mncc_similarity as mncc
+from geopose.metrics.losses import ncc_similarity as ncc
 
 
 def smooth_image(batch: int = 2, size: int = 48, seed: int = 0) -> torch.Tensor:
@@ -173,34 +173,42 @@ def test_cldice_identical_disjoint_and_partial():
 
 # ------------------------------------------------------------ pose errors
 def test_pose_errors_known_rotation_and_translation():
-    ref = isopose(1, dtype=torch.float64)
-    r = torch.tensor([[0.1, 0.0, 0.0]], dtype=torch.float64)
-    t = torch.tensor([[0.0, 650.0, 0.0]], dtype=torch.float64)
-    pred = RigidTransform.from_euler_zyx(r, t + torch.tensor([[3.0, -4.0, 0.0]], dtype=torch.float64))
+    ref = isopose(1)
+    pred = pose_from_params(np.array([0.1, 0.0, 0.0]), np.array([3.0, 646.0, 0.0]))
     err = pose_errors(pred, ref)
-    assert err.rotation_deg.item() == pytest.approx(math.degrees(0.1))
-    assert torch.allclose(err.euler_deg, torch.tensor([[math.degrees(0.1), 0.0, 0.0]], dtype=torch.float64))
-    assert torch.allclose(err.translation_mm, torch.tensor([[3.0, -4.0, 0.0]], dtype=torch.float64))
-    assert err.translation_norm_mm.item() == pytest.approx(5.0)
-    source = pred.matrix[0, :3, 3]  # source position = R @ t
-    assert err.source_distance_mm.item() == pytest.approx((source - ref.matrix[0, :3, 3]).norm().item())
-    expected = math.hypot(MODEL_SDD_MM / 2 * 0.1, err.source_distance_mm.item())
-    assert err.double_geodesic_mm.item() == pytest.approx(expected)
-    assert double_geodesic_mm(ref, ref).item() == pytest.approx(0.0, abs=1e-9)
+    assert err.rotation_deg[0] == pytest.approx(math.degrees(0.1))
+    np.testing.assert_allclose(err.euler_deg, [[math.degrees(0.1), 0.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(err.translation_mm, [[3.0, -4.0, 0.0]], atol=1e-9)
+    assert err.translation_norm_mm[0] == pytest.approx(5.0)
+    source = pred[:3, 3]  # source position = R @ t
+    assert err.source_distance_mm[0] == pytest.approx(np.linalg.norm(source - ref[:3, 3]))
+    expected = math.hypot(MODEL_SDD_MM / 2 * 0.1, err.source_distance_mm[0])
+    assert err.double_geodesic_mm[0] == pytest.approx(expected)
+    assert double_geodesic_mm(ref, ref)[0] == pytest.approx(0.0, abs=1e-9)
 
 
 def test_pose_errors_wrap_euler_and_validate():
-    a = RigidTransform.from_euler_zyx(torch.tensor([[math.pi - 0.05, 0.0, 0.0]]), torch.zeros(1, 3))
-    b = RigidTransform.from_euler_zyx(torch.tensor([[-math.pi + 0.05, 0.0, 0.0]]), torch.zeros(1, 3))
+    a = pose_from_params(np.array([math.pi - 0.05, 0.0, 0.0]), np.zeros(3))
+    b = pose_from_params(np.array([-math.pi + 0.05, 0.0, 0.0]), np.zeros(3))
     err = pose_errors(a, b)
-    assert err.euler_deg[0, 0].item() == pytest.approx(-math.degrees(0.1), abs=1e-3)
-    assert err.rotation_deg.item() == pytest.approx(math.degrees(0.1), abs=1e-3)
+    assert err.euler_deg[0, 0] == pytest.approx(-math.degrees(0.1), abs=1e-3)
+    assert err.rotation_deg[0] == pytest.approx(math.degrees(0.1), abs=1e-3)
     with pytest.raises(ValueError, match="poses"):
-        pose_errors(torch.eye(3), torch.eye(4))
+        pose_errors(np.eye(3), np.eye(4))
+
+
+def test_numpy_ncc_family_equals_the_differentiable_one():
+    a, b = smooth_image(seed=3).double(), smooth_image(seed=4).double()
+    for ours, theirs in ((S.ncc, ncc), (S.local_ncc, local_ncc), (S.mncc, mncc)):
+        want = theirs(a, b).numpy()
+        got = [ours(a[i, 0].numpy(), b[i, 0].numpy()) for i in range(len(a))]
+        np.testing.assert_allclose(got, want, atol=1e-9)
+    with pytest.raises(ValueError, match="same shape"):
+        S.mncc(a[0, 0].numpy(), b[0, 0, :-1].numpy())
 
 
 def test_view_accuracy():
-    assert view_accuracy(torch.tensor([0, 1, 2, 2]), torch.tensor([0, 1, 1, 2])) == 0.75
+    assert view_accuracy(np.array([0, 1, 2, 2]), np.array([0, 1, 1, 2])) == 0.75
     assert view_accuracy([1], [1]) == 1.0
     with pytest.raises(ValueError, match="0..2"):
         view_accuracy([3], [1])

@@ -12,7 +12,7 @@ import torch
 slicer = pytest.importorskip("slicer", reason="needs the slicer-core wheel (Slicer's MRML in Python)")
 
 from geopose import contract as C  # noqa: E402
-from geopose.geometry import CArmAngles, Detector, RigidTransform, isopose, project_points, source_and_detector_points  # noqa: E402
+from geopose.geometry import CArmAngles, Detector, isopose, pose_from_params, project_points, source_and_detector_points  # noqa: E402
 from geopose.volume import Volume  # noqa: E402
 from geopose import mrml  # noqa: E402
 from geopose.mrml.plane import detector_index_to_camera  # noqa: E402
@@ -41,9 +41,7 @@ def _cta() -> tuple[Volume, Volume]:
 
 
 def _pose(view: int = C.VIEW_PA, dr=(0.05, -0.03, 0.02), dt=(3.0, -5.0, 2.0)) -> np.ndarray:
-    base = isopose(view, dtype=torch.float64)
-    d = RigidTransform.from_euler_zyx(torch.tensor([dr], dtype=torch.float64), torch.tensor([dt], dtype=torch.float64))
-    return (d @ base).matrix[0].numpy()
+    return pose_from_params(np.asarray(dr), np.asarray(dt)) @ isopose(view)
 
 
 DET = Detector(48, 56, (0.6, 0.5), 1000.0, principal_offset_mm=(1.5, -2.0))
@@ -101,8 +99,8 @@ def test_detector_ijk_to_ras_puts_every_pixel_on_its_detector_point():
     pose_c = _pose(C.VIEW_LAT_PLUS)
     pose_ras = cta.centred_to_ras @ pose_c
     m = mrml.detector_ijk_to_ras(DET, pose_ras)
-    _, world = source_and_detector_points(RigidTransform(torch.as_tensor(pose_c)[None]), DET)
-    want = world[0].numpy() @ cta.centred_to_ras[:3, :3].T + cta.centred_to_ras[:3, 3]  # (H, W, 3) RAS
+    _, world = source_and_detector_points(pose_c, DET)
+    want = world @ cta.centred_to_ras[:3, :3].T + cta.centred_to_ras[:3, 3]  # (H, W, 3) RAS
     jj, ii = np.meshgrid(np.arange(DET.rows), np.arange(DET.cols), indexing="ij")
     ijk = np.stack([ii, jj, np.zeros_like(ii), np.ones_like(ii)], -1).astype(float)
     got = ijk @ m.T
@@ -146,12 +144,12 @@ def test_transform_and_camera_nodes_match_pose(scene):
     got = mrml.transform_matrix(t)
     np.testing.assert_allclose(got, pose_ras, atol=1e-12)
     cam = mrml.camera_node(scene, pose_ras, DET, "GeoPose LAT camera")
-    src, world = source_and_detector_points(RigidTransform(torch.as_tensor(pose_c)[None]), DET)
+    src, world = source_and_detector_points(pose_c, DET)
     to_ras = lambda p: p @ cta.centred_to_ras[:3, :3].T + cta.centred_to_ras[:3, 3]  # noqa: E731
-    np.testing.assert_allclose(cam.GetPosition(), to_ras(src[0].numpy()), atol=1e-9)
-    centre = to_ras(world[0].numpy().reshape(-1, 3).mean(0))
+    np.testing.assert_allclose(cam.GetPosition(), to_ras(src), atol=1e-9)
+    centre = to_ras(world.reshape(-1, 3).mean(0))
     np.testing.assert_allclose(cam.GetFocalPoint(), centre, atol=1e-6)
-    row0_dir = to_ras(world[0, 0].numpy().mean(0)) - centre  # towards image row 0
+    row0_dir = to_ras(world[0].mean(0)) - centre  # towards image row 0
     up = np.asarray(cam.GetViewUp())
     assert np.dot(up, row0_dir / np.linalg.norm(row0_dir)) > 0.999
     fov = 2 * math.degrees(math.atan(DET.rows * DET.spacing_mm[0] / 2 / DET.sdd_mm))
@@ -173,9 +171,9 @@ def test_projected_segmentation_covers_projected_vessel_voxels(scene):
     # Pixels hit by vessel voxel centres (projected with the geometry module) are covered ...
     kji = np.argwhere(lab.array == 1)
     ijk = np.c_[kji[:, ::-1], np.ones(len(kji))]
-    pts = torch.as_tensor((ijk @ cta.ijk_to_centred.T)[:, :3])
-    rc, _ = project_points(RigidTransform(torch.as_tensor(pose_c)[None]), det, pts)
-    rc = np.rint(rc[0].numpy()).astype(int)
+    pts = (ijk @ cta.ijk_to_centred.T)[:, :3]
+    rc, _ = project_points(pose_c, det, pts)
+    rc = np.rint(rc).astype(int)
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < det.rows) & (rc[:, 1] >= 0) & (rc[:, 1] < det.cols)
     assert inside.mean() > 0.9
     hit = np.zeros(det.shape, bool)

@@ -10,6 +10,7 @@ import os
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from conftest import SHARED
@@ -24,8 +25,9 @@ from geopose.contract import (
     VIEW_LAT_PLUS,
     VIEW_PA,
 )
-from geopose.geometry.carm import isopose
-from geopose.geometry.rigid import RigidTransform, params_from_pose, rotation_angle_rad
+from geopose.errors import InputError
+from geopose.geometry.poses import invert, isopose, params_from_pose, rotation_angle_rad
+from geopose.images import normalize_minmax
 from geopose.nets import (
     BackboneConfig,
     InitNet,
@@ -33,13 +35,14 @@ from geopose.nets import (
     RefineNet,
     export_onnx,
     load_model,
-    make_predictors,
-    normalize_minmax,
+    load_models,
     parameter_count,
     read_model_header,
     save_model,
 )
-from geopose.nets.backend import OnnxInitPredictor, OnnxRefinePredictor
+from geopose.nets.decoding import decode_init_pose
+from geopose.nets.predictors import OnnxInit, OnnxRefine, TorchInit, TorchRefine
+from geopose.training.poses import init_pose_tensor, residual_tensor
 from geopose.nets.checkpoint import (
     published_manifest_path,
     import_checkpoint,
@@ -127,15 +130,18 @@ def test_normalize_minmax_per_image_and_input_untouched():
 
 # -------------------------------------------------------------------- Init
 def test_init_decode_isopose_and_scaling():
-    raw = torch.zeros(3, 6, dtype=torch.float64)
-    views = torch.tensor([VIEW_LAT_MINUS, VIEW_PA, VIEW_LAT_PLUS])
-    pose = InitNet.decode(raw, views)
-    assert torch.allclose(pose, isopose(views, dtype=torch.float64).matrix, atol=1e-9)
-    raw = torch.tensor([[0.1, -0.2, 0.05, 0.3, -0.4, 0.5]], dtype=torch.float64)
-    r, t = params_from_pose(InitNet.decode(raw, torch.tensor([VIEW_LAT_PLUS])))
-    assert torch.allclose(r[0], torch.tensor([0.1 + VIEW_ANCHOR_RAD[VIEW_LAT_PLUS], -0.2, 0.05], dtype=torch.float64))
-    expected_t = torch.tensor(ISO_TRANSLATION_MM, dtype=torch.float64) + raw[0, 3:] * INIT_TRANSLATION_SCALE_MM
-    assert torch.allclose(t[0], expected_t)
+    raw = np.zeros((3, 6))
+    views = np.array([VIEW_LAT_MINUS, VIEW_PA, VIEW_LAT_PLUS])
+    np.testing.assert_allclose(decode_init_pose(raw, views), np.stack([isopose(v) for v in views]), atol=1e-9)
+    raw = np.array([[0.1, -0.2, 0.05, 0.3, -0.4, 0.5]])
+    r, t = params_from_pose(decode_init_pose(raw, np.array([VIEW_LAT_PLUS])))
+    np.testing.assert_allclose(r[0], [0.1 + VIEW_ANCHOR_RAD[VIEW_LAT_PLUS], -0.2, 0.05], atol=1e-12)
+    np.testing.assert_allclose(t[0], np.asarray(ISO_TRANSLATION_MM) + raw[0, 3:] * INIT_TRANSLATION_SCALE_MM)
+    # Training decodes the same way, differentiably.
+    raw = np.random.default_rng(0).normal(0, 0.3, (5, 6))
+    views = np.array([0, 1, 2, 1, 0])
+    np.testing.assert_allclose(init_pose_tensor(torch.as_tensor(raw), torch.as_tensor(views)).numpy(),
+                               decode_init_pose(raw, views), atol=1e-12)
 
 
 def test_init_view_rule_and_view_conditioned_pose():
@@ -145,72 +151,84 @@ def test_init_view_rule_and_view_conditioned_pose():
         net.net.fc.view.weight.zero_()
         # logits (LAT-, PA, LAT+): PA highest, then LAT+.
         net.net.fc.view.bias.copy_(torch.tensor([0.0, 5.0, 1.0]))
-    image = torch.rand(2, 1, 64, 64) * 40 + 3  # not normalised: predict min-maxes
-    pose, view, logits = net.predict(image, torch.tensor([False, True]), mirror=False)
+    init = TorchInit(net)
+    image = np.random.default_rng(0).random((2, 1, 64, 64)).astype(np.float32) * 40 + 3  # not normalised
+    pose, view, logits = init.predict(image, np.array([False, True]), mirror=False)
     assert view.tolist() == [VIEW_PA, VIEW_LAT_PLUS]
-    assert torch.allclose(logits[0], torch.tensor([0.0, 5.0, 1.0]))
-    _, view_free, _ = net.predict(image, None, mirror=False)
+    np.testing.assert_allclose(logits[0], [0.0, 5.0, 1.0], atol=1e-6)
+    _, view_free, _ = init.predict(image, None, mirror=False)
     assert view_free.tolist() == [VIEW_PA, VIEW_PA]
     with torch.no_grad():
         net.net.fc.view.bias.copy_(torch.tensor([2.0, 5.0, 1.0]))
-    pose, view, _ = net.predict(image, torch.tensor(True), mirror=False)
+    pose, view, _ = init.predict(image, True, mirror=False)
     assert view.tolist() == [VIEW_LAT_MINUS, VIEW_LAT_MINUS]
     # The pose equals the forward pass run with the chosen label's embedding.
-    raw, _ = net(normalize_minmax(image), view)
-    assert torch.allclose(pose, InitNet.decode(raw, view), atol=1e-5)
-    raw_pa, _ = net(normalize_minmax(image), torch.full((2,), VIEW_PA))
+    with torch.no_grad():
+        raw, _ = net(torch.as_tensor(normalize_minmax(image)), torch.as_tensor(view))
+        raw_pa, _ = net(torch.as_tensor(normalize_minmax(image)), torch.full((2,), VIEW_PA))
+    np.testing.assert_allclose(pose, decode_init_pose(raw.double().numpy(), view), atol=1e-5)
     assert not torch.allclose(raw, raw_pa)
     with pytest.raises(ValueError, match="view labels"):
-        net(image, torch.tensor([0, 3]))
+        net(torch.as_tensor(image), torch.tensor([0, 3]))
     with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
-        net.predict(torch.rand(2, 3, 64, 64))
+        init.predict(np.random.rand(2, 3, 64, 64))
 
 
 def test_mirror_averaged_side_is_antisymmetric_and_cancels_a_side_bias():
     torch.manual_seed(1)
     net = small_init().eval()
-    image = torch.rand(3, 1, 64, 64)
-    _, _, logits = net.predict(image, None)
-    _, _, mirrored = net.predict(image.flip(-1), None)
+    init = TorchInit(net)
+    image = np.random.default_rng(1).random((3, 1, 64, 64)).astype(np.float32)
+    _, _, logits = init.predict(image, None)
+    _, _, mirrored = init.predict(image[..., ::-1], None)
     # LAT+ - LAT- margin flips sign with the image; the PA logit is unchanged.
     margin = logits[:, VIEW_LAT_PLUS] - logits[:, VIEW_LAT_MINUS]
-    assert torch.allclose(margin, -(mirrored[:, VIEW_LAT_PLUS] - mirrored[:, VIEW_LAT_MINUS]), atol=1e-5)
-    assert margin.abs().min() > 1e-4
-    assert torch.allclose(logits[:, VIEW_PA], mirrored[:, VIEW_PA], atol=1e-5)
+    np.testing.assert_allclose(margin, -(mirrored[:, VIEW_LAT_PLUS] - mirrored[:, VIEW_LAT_MINUS]), atol=1e-5)
+    assert np.abs(margin).min() > 1e-4
+    np.testing.assert_allclose(logits[:, VIEW_PA], mirrored[:, VIEW_PA], atol=1e-5)
     # It is the mean of the single-image logits and the mirrored image's, re-indexed.
-    _, single = net.forward_all_views(normalize_minmax(image))
-    _, single_flipped = net.forward_all_views(normalize_minmax(image).flip(-1))
+    with torch.no_grad():
+        x = torch.as_tensor(normalize_minmax(image))
+        _, single = net.forward_all_views(x)
+        _, single_flipped = net.forward_all_views(x.flip(-1))
     expected = 0.5 * (single + single_flipped[:, [VIEW_LAT_PLUS, VIEW_PA, VIEW_LAT_MINUS]])
-    assert torch.allclose(logits, expected, atol=1e-5)
+    np.testing.assert_allclose(logits, expected.numpy(), atol=1e-5)
     # A constant preference for LAT- (image-independent logits) cancels out.
     with torch.no_grad():
         net.net.fc.view.weight.zero_()
         net.net.fc.view.bias.copy_(torch.tensor([3.0, 0.0, 1.0]))
-    _, _, biased = net.predict(image, None)
-    assert torch.allclose(biased[:, VIEW_LAT_PLUS], biased[:, VIEW_LAT_MINUS])
+    _, _, biased = init.predict(image, None)
+    np.testing.assert_allclose(biased[:, VIEW_LAT_PLUS], biased[:, VIEW_LAT_MINUS], atol=1e-6)
 
 
 # ------------------------------------------------------------------ Refine
 def test_refine_residual_scaling_and_identity():
     torch.manual_seed(0)
     net = small_refine()
-    target, render = torch.rand(2, 1, 64, 64), torch.rand(2, 1, 64, 64)
+    refine = TorchRefine(net)
+    g = np.random.default_rng(0)
+    target, render = g.random((2, 1, 64, 64)), g.random((2, 1, 64, 64))
     with torch.no_grad():
         net.net.head.weight.zero_()
         net.net.head.bias.zero_()
-    D = net.predict_residual(target, render, torch.tensor([VIEW_PA, VIEW_LAT_PLUS]))
-    assert torch.allclose(D, torch.eye(4).expand(2, 4, 4), atol=1e-6)
+    D = refine.predict_residual(target, render, np.array([VIEW_PA, VIEW_LAT_PLUS]))
+    np.testing.assert_allclose(D, np.broadcast_to(np.eye(4), (2, 4, 4)), atol=1e-6)
     with torch.no_grad():
         net.net.head.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
-    D = net.predict_residual(target, render, VIEW_PA)
-    angle = rotation_angle_rad(D[:, :3, :3])
-    assert torch.allclose(angle, torch.full((2,), REFINE_ROTATION_SCALE_RAD[0]), atol=1e-6)
+    D = refine.predict_residual(target, render, VIEW_PA)
+    np.testing.assert_allclose(rotation_angle_rad(D[:, :3, :3]), REFINE_ROTATION_SCALE_RAD[0], atol=1e-6)
     # Translation column is R(w) @ dt with dt = (0, s_y, 0) mm; R(w) is about x.
     a, s = REFINE_ROTATION_SCALE_RAD[0], REFINE_TRANSLATION_SCALE_MM[1]
-    assert torch.allclose(D[0, :3, 3], torch.tensor([0.0, s * math.cos(a), s * math.sin(a)]), atol=1e-4)
+    np.testing.assert_allclose(D[0, :3, 3], [0.0, s * math.cos(a), s * math.sin(a)], atol=1e-4)
     T = isopose(VIEW_PA)
-    T_new = RigidTransform(D).inverse() @ RigidTransform(T.matrix.expand(2, 4, 4))
-    assert torch.allclose((RigidTransform(D) @ T_new).matrix, T.matrix.expand(2, 4, 4), atol=1e-4)
+    np.testing.assert_allclose(D[0] @ (invert(D[0]) @ T), T, atol=1e-9)
+    # Training decodes the same residual, differentiably.
+    raw = g.normal(0, 1, (4, 6))
+    from geopose.nets.decoding import residual_from_raw
+
+    np.testing.assert_allclose(residual_tensor(torch.as_tensor(raw)).numpy(), residual_from_raw(raw), atol=1e-12)
+    with pytest.raises(ValueError, match="same shape"):
+        refine.predict_residual(target, render[:, :, :32], VIEW_PA)
 
 
 def test_refine_siamese_encoder_is_shared():
@@ -381,58 +399,86 @@ def test_import_checkpoint_command(tmp_path, capsys):
 # ------------------------------------------------------------ ONNX backend
 def test_onnx_parity_with_torch(tmp_path):
     torch.manual_seed(0)
-    init, refine = small_init(), small_refine()
+    net_init, net_refine = small_init(), small_refine()
     px = 64
-    init_onnx = OnnxInitPredictor(export_onnx(init, tmp_path / "init.onnx", image_px=px))
-    refine_onnx = OnnxRefinePredictor(export_onnx(refine, image_px=px))
-    image = torch.rand(3, 1, px, px)
-    lateral = torch.tensor([True, False, True])
+    init, refine = TorchInit(net_init), TorchRefine(net_refine)
+    init_onnx = OnnxInit(export_onnx(net_init, tmp_path / "init.onnx", image_px=px))
+    refine_onnx = OnnxRefine(export_onnx(net_refine, image_px=px))
+    g = np.random.default_rng(0)
+    image = g.random((3, 1, px, px)).astype(np.float32)
+    lateral = np.array([True, False, True])
     pose_t, view_t, logits_t = init.predict(image, lateral)
     pose_o, view_o, logits_o = init_onnx.predict(image, lateral)
-    assert torch.equal(view_t, view_o)
-    assert torch.allclose(logits_t, logits_o, atol=1e-4)
-    raw_t, _ = init.forward_all_views(normalize_minmax(image))
-    raw_o = init_onnx.runner.session.run(None, {"image": normalize_minmax(image).numpy()})[0]
-    assert torch.allclose(raw_t, torch.from_numpy(raw_o), atol=1e-4)
+    np.testing.assert_array_equal(view_t, view_o)
+    np.testing.assert_allclose(logits_t, logits_o, atol=1e-4)
     # Pose parity: rotation 1e-4, translation scaled by 100 mm -> 1e-2 mm.
-    assert torch.allclose(pose_t[:, :3, :3], pose_o[:, :3, :3], atol=1e-4)
-    assert torch.allclose(pose_t[:, :3, 3], pose_o[:, :3, 3], atol=1e-2)
-    target, render = torch.rand(3, 1, px, px), torch.rand(3, 1, px, px)
-    view = torch.tensor([0, 1, 2])
+    np.testing.assert_allclose(pose_t[:, :3, :3], pose_o[:, :3, :3], atol=1e-4)
+    np.testing.assert_allclose(pose_t[:, :3, 3], pose_o[:, :3, 3], atol=1e-2)
+    target, render = g.random((3, 1, px, px)), g.random((3, 1, px, px))
+    view = np.array([0, 1, 2])
     D_t = refine.predict_residual(target, render, view)
-    D_o = refine_onnx.predict_residual(target, render, view)
-    assert torch.allclose(D_t, D_o, atol=1e-4)
+    np.testing.assert_allclose(D_t, refine_onnx.predict_residual(target, render, view), atol=1e-4)
     # Half-precision weight storage: about half the file, outputs within fp16 rounding.
-    half = export_onnx(refine, image_px=px, weights="float16")
-    full = export_onnx(refine, image_px=px)
+    half = export_onnx(net_refine, image_px=px, weights="float16")
+    full = export_onnx(net_refine, image_px=px)
     assert len(half) < 0.6 * len(full)
-    D_h = OnnxRefinePredictor(half).predict_residual(target, render, view)
-    assert torch.allclose(D_t, D_h, atol=2e-2) and not torch.equal(D_h, D_o)
-    with pytest.raises(ValueError, match="not GeoPose-Refine"):
-        OnnxRefinePredictor(tmp_path / "init.onnx")
-    with pytest.raises(ValueError, match=r"\(B, 1, 64, 64\) batch for this ONNX model"):
-        init_onnx.predict(torch.rand(1, 1, 32, 32))
-    with pytest.raises(ValueError, match="pass pairs"):
+    D_h = OnnxRefine(half).predict_residual(target, render, view)
+    np.testing.assert_allclose(D_t, D_h, atol=2e-2)
+    assert not np.array_equal(D_h, refine_onnx.predict_residual(target, render, view))
+    with pytest.raises(InputError, match="not GeoPose-Refine|GeoPose-Init network"):
+        OnnxRefine(tmp_path / "init.onnx")
+    with pytest.raises(ValueError, match=r"\(B, 1, 64, 64\) batch"):
+        init_onnx.predict(np.random.rand(1, 1, 32, 32))
+    with pytest.raises(ValueError, match="pairs"):
         refine_onnx.predict_residual(target, render[:2], view)
 
 
-def test_make_predictors_both_backends_agree(tmp_path):
-    save_model(small_init(), tmp_path / "a.pt")
-    save_model(small_refine(), tmp_path / "b.pt")
-    image = torch.rand(2, 1, 256, 256)
+def ship_small_models(folder: Path, render_px: int | None = None) -> Path:
+    """Small Init + Refine shipped like `geopose train ship` does: .pt, ONNX and the manifest."""
+    from geopose.training.manifest import file_entry, model_entry, write_manifest
+
+    entries = {}
+    for kind, net in (("init", small_init()), ("refine", small_refine())):
+        pt = save_model(net, folder / f"geopose_{kind}.pt")
+        onnx = export_onnx(net, folder / f"geopose_{kind}.onnx")
+        entry = model_entry(pt, onnx=file_entry(onnx))
+        if render_px:
+            entry["input"]["render_px"] = render_px
+        entries[kind] = entry
+    write_manifest(folder, entries)
+    return folder
+
+
+def test_load_models_both_runtimes_agree_and_check_every_file(tmp_path):
+    ship_small_models(tmp_path, render_px=96)
+    image = np.random.default_rng(2).random((2, 1, 256, 256)).astype(np.float32)
     results = {}
-    for backend in ("torch", "onnxruntime"):
-        init, refine = make_predictors(tmp_path, backend=backend)
-        pose, view, _ = init.predict(image, torch.tensor([True, False]))
-        results[backend] = (pose, view, refine.predict_residual(image, image.flip(-1), view))
-    assert torch.equal(results["torch"][1], results["onnxruntime"][1])
-    assert torch.allclose(results["torch"][0][:, :3, :3], results["onnxruntime"][0][:, :3, :3], atol=1e-4)
-    assert torch.allclose(results["torch"][2], results["onnxruntime"][2], atol=1e-4)
-    with pytest.raises(ValueError, match="backend"):
-        make_predictors(tmp_path, backend="tensorrt")
-    (tmp_path / "b.pt").unlink()
-    with pytest.raises(FileNotFoundError, match="no refine model"):
-        make_predictors(tmp_path)
+    for runtime in ("torch", "onnxruntime"):
+        models = load_models(tmp_path, runtime=runtime)
+        assert models.render_px == 96 and models.runtime == runtime
+        assert models.files["init"]["format"] == ("pt" if runtime == "torch" else "onnx")
+        pose, view, _ = models.init.predict(image, np.array([True, False]))
+        results[runtime] = (pose, view, models.refine.predict_residual(image, image[..., ::-1], view))
+    np.testing.assert_array_equal(results["torch"][1], results["onnxruntime"][1])
+    np.testing.assert_allclose(results["torch"][0][:, :3, :3], results["onnxruntime"][0][:, :3, :3], atol=1e-4)
+    np.testing.assert_allclose(results["torch"][2], results["onnxruntime"][2], atol=1e-4)
+    with pytest.raises(InputError, match="runtime"):
+        load_models(tmp_path, runtime="tensorrt")
+    # The ONNX graphs run are the manifest's: a replaced graph is refused by its checksum.
+    onnx = tmp_path / "geopose_refine.onnx"
+    onnx.write_bytes(onnx.read_bytes()[:-10] + b"0123456789")
+    with pytest.raises(ValueError, match="SHA-256"):
+        load_models(tmp_path, runtime="onnxruntime")
+    load_models(tmp_path, runtime="torch")  # the .pt files are still intact
+    (tmp_path / "manifest.json").unlink()
+    with pytest.raises(InputError, match="manifest"):
+        load_models(tmp_path, runtime="torch")
+
+
+def test_the_shipped_models_declare_their_input():
+    models = load_models(runtime="onnxruntime")
+    assert models.render_px == 96 and models.clip_percentiles == (25.0, 75.0)
+    assert set(models.files) == {"init", "refine"} and all(f["path"].endswith(".onnx") for f in models.files.values())
 
 
 def test_cli_reports_bad_checkpoint_without_traceback(tmp_path, monkeypatch, capsys):
@@ -450,12 +496,12 @@ def test_cli_reports_bad_checkpoint_without_traceback(tmp_path, monkeypatch, cap
 @pytest.mark.gpu
 def test_predictors_on_cuda_match_cpu():
     init, refine = small_init(), small_refine()
-    image = torch.rand(2, 1, 128, 128)
-    pose_cpu, view_cpu, _ = init.predict(image, torch.tensor([True, False]))
-    D_cpu = refine.predict_residual(image, image.flip(-1), view_cpu)
-    init_gpu, refine_gpu = init.to("cuda"), refine.to("cuda")
-    pose_gpu, view_gpu, _ = init_gpu.predict(image.cuda(), torch.tensor([True, False], device="cuda"))
-    D_gpu = refine_gpu.predict_residual(image.cuda(), image.flip(-1).cuda(), view_gpu)
-    assert torch.equal(view_gpu.cpu(), view_cpu)
-    assert torch.allclose(pose_gpu[:, :3, :3].cpu(), pose_cpu[:, :3, :3], atol=1e-3)
-    assert torch.allclose(D_gpu.cpu(), D_cpu, atol=1e-3)
+    image = np.random.default_rng(3).random((2, 1, 128, 128)).astype(np.float32)
+    lateral = np.array([True, False])
+    pose_cpu, view_cpu, _ = TorchInit(init).predict(image, lateral)
+    D_cpu = TorchRefine(refine).predict_residual(image, image[..., ::-1], view_cpu)
+    pose_gpu, view_gpu, _ = TorchInit(init.to("cuda")).predict(image, lateral)
+    D_gpu = TorchRefine(refine.to("cuda")).predict_residual(image, image[..., ::-1], view_gpu)
+    np.testing.assert_array_equal(view_gpu, view_cpu)
+    np.testing.assert_allclose(pose_gpu[:, :3, :3], pose_cpu[:, :3, :3], atol=1e-3)
+    np.testing.assert_allclose(D_gpu, D_cpu, atol=1e-3)

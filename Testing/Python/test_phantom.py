@@ -146,9 +146,9 @@ def test_pose_centres_isocentre(dsa_pair):
     acqs, iso, sims = dsa_pair
     for acq, sim in zip(acqs, sims):
         det = sim.run.detector
-        px, depth = project_points(acq.pose(iso), det, torch.as_tensor(iso)[None])
-        assert np.allclose(px[0, 0].numpy(), [(det.rows - 1) / 2, (det.cols - 1) / 2], atol=1e-6)
-        assert np.isclose(float(depth[0, 0]), acq.angles.sod_mm)
+        px, depth = project_points(acq.pose(iso).matrix[0].numpy(), det, np.asarray(iso)[None])
+        assert np.allclose(px[0], [(det.rows - 1) / 2, (det.cols - 1) / 2], atol=1e-6)
+        assert np.isclose(float(depth[0]), acq.angles.sod_mm)
 
 
 def test_projected_carotid_lands_on_opacified_vessel(dsa_pair):

@@ -13,31 +13,35 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
 from geopose import contract as C
 from geopose.cta import load_cta
 from geopose.dsa import read_dsa
-from geopose.geometry import Detector, RigidTransform, isopose, pose_from_params
+from geopose.geometry import Detector, invert, isopose, pose_from_params
 from geopose.metrics import mncc
+from geopose.nets import ModelSet
+from geopose.options import RegistrationOptions
 from geopose.phantom.cli import write_phantom
 from geopose.register import (
     Monitor,
     RegistrationCancelled,
-    RegistrationOptions,
+    TTOSchedule,
+    TTOView,
     calibrate,
     calibrated_init,
     greedy_refine,
     prepare_case,
     register_case,
+    render_model_view,
     test_time_optimise as run_tto,
 )
-from geopose.register.case import CRANIUM_CHANNEL
 from geopose.register.evaluate import evaluate_pose, load_truth, truth_metrics
 from geopose.register.record import SCHEMA_VERSION, build_record
 from geopose.register.report import write_overlays
-from geopose.render import DRR
+from geopose.render.renderer import NumpyRenderer, TorchRenderer
+from geopose.render.volume import RenderVolume
+from geopose.volume import Volume
 
 
 #: mPCD (mm at the detector) the TTO must reach from a 5 deg / 10 mm perturbation when the
@@ -45,40 +49,45 @@ from geopose.render import DRR
 TTO_CONSISTENT_MPCD_MM = 1.0
 #: ... and on the phantom's simulated DSA MAP (see test_oracle_registration_...).
 TTO_ORACLE_MPCD_MM = 5.0
+#: Network-input render size of the oracle "models".
+ORACLE_RENDER_PX = 64
 
 
 class OracleInit:
     """Answers queued canonical poses in call order (the view label from metadata)."""
 
-    def __init__(self, answers: list[torch.Tensor]):
+    def __init__(self, answers: list[np.ndarray]):
         self.answers = list(answers)
-        self.images: list[torch.Tensor] = []
+        self.images: list[np.ndarray] = []
 
-    def predict(self, image, is_lateral=None):
+    def predict(self, image, is_lateral=None, mirror=True):
         self.images.append(image)
-        pose = self.answers.pop(0).reshape(1, 4, 4).float()
-        view = torch.tensor([C.VIEW_LAT_PLUS if bool(is_lateral[0]) else C.VIEW_PA])
-        logits = torch.nn.functional.one_hot(view, 3).float()
-        return pose, view, logits
+        pose = np.asarray(self.answers.pop(0), dtype=np.float64).reshape(1, 4, 4)
+        view = np.array([C.VIEW_LAT_PLUS if bool(np.asarray(is_lateral).reshape(-1)[0]) else C.VIEW_PA])
+        return pose, view, np.eye(3)[view]
 
 
 class OracleRefine:
     """Answers queued residuals ``D`` (the caller applies ``inverse(D) @ T``)."""
 
-    def __init__(self, residuals: list[torch.Tensor]):
+    def __init__(self, residuals: list[np.ndarray]):
         self.residuals = list(residuals)
         self.calls = 0
 
     def predict_residual(self, target, render, view):
         self.calls += 1
-        return self.residuals.pop(0).reshape(1, 4, 4) if self.residuals else torch.eye(4)[None]
+        return np.asarray(self.residuals.pop(0)).reshape(1, 4, 4) if self.residuals else np.eye(4)[None]
 
 
-def _perturb(T: np.ndarray, rot_deg=(3.0, -3.0, 2.0), trans_mm=(6.0, -5.0, 6.0)) -> torch.Tensor:
-    """A world-frame perturbation about the pose's own source: rotation ~4.7 deg, translation ~9.8 mm."""
-    D = pose_from_params(torch.deg2rad(torch.tensor([rot_deg], dtype=torch.float64)), torch.zeros(1, 3, dtype=torch.float64))
-    D[:, :3, 3] = torch.tensor(trans_mm, dtype=torch.float64)
-    return D @ torch.as_tensor(T, dtype=torch.float64)[None]
+def oracle_models(init: OracleInit, refine: OracleRefine) -> ModelSet:
+    return ModelSet(init, refine, render_px=ORACLE_RENDER_PX, runtime="torch")
+
+
+def _perturb(T: np.ndarray, rot_deg=(3.0, -3.0, 2.0), trans_mm=(6.0, -5.0, 6.0)) -> np.ndarray:
+    """A world-frame perturbation: rotation ~4.7 deg about the centre, translation ~9.8 mm."""
+    D = pose_from_params(np.radians(rot_deg), np.zeros(3))
+    D[:3, 3] = trans_mm
+    return D @ np.asarray(T, dtype=np.float64)
 
 
 @pytest.fixture(scope="module")
@@ -91,43 +100,43 @@ def phantom_case(tmp_path_factory) -> Path:
 def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
     case = phantom_case
     truth = json.loads((case / "truth.json").read_text())
-    N = torch.tensor(truth["native_to_canonical"], dtype=torch.float64)
+    N = np.asarray(truth["native_to_canonical"], dtype=np.float64)
     true = {k: np.asarray(truth["views"][k]["pose_camera_to_world"]) for k in ("pa", "lat")}
     cta = load_cta(case / "cta.nii.gz")
     runs = {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
     start = {k: _perturb(true[k]) for k in true}
-    t_cal = isopose(C.VIEW_PA, dtype=torch.float64).matrix
+    t_cal = isopose(C.VIEW_PA)
     # A perfect Init: canonical poses N @ T for the calibration DRR and for each view.
     init = OracleInit([N @ t_cal, N @ start["pa"], N @ start["lat"]])
     refine = OracleRefine([])  # identity residuals: no proposal can strictly improve
     stages = []
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
     result = register_case(
-        cta, runs, init=init, refine=refine,
-        segmentation=load_cta(case / "labels.nii.gz", check_hu=False).like(
-            (load_cta(case / "labels.nii.gz", check_hu=False).array >= 2).astype(np.uint8)
-        ),
-        options=RegistrationOptions(iterations=C.TTO_ITERATIONS, tto_px=128, device="cpu"),
+        cta, runs, models=oracle_models(init, refine), segmentation=labels.like((labels.array >= 2).astype(np.uint8)),
+        options=RegistrationOptions(backend="torch", device="cpu", tto_px=128),
         progress=lambda stage, f, msg: stages.append(stage),
     )
-    # Calibration recovers the canonical->native transfer exactly (it is inverse(N)).
-    assert torch.allclose(result.calibration.frame_transfer.double(), torch.linalg.inv(N)[None], atol=1e-4)
+    # Calibration recovers the canonical->native transfer exactly (it is inverse(N)); the
+    # calibration image is the min-max DRR in the model geometry, rendered at the models' size.
+    np.testing.assert_allclose(result.calibration.frame_transfer, np.linalg.inv(N), atol=1e-6)
+    assert init.images[0].shape == (1, 1, C.MODEL_DETECTOR_PX, C.MODEL_DETECTOR_PX)
+    assert init.images[0].min() == 0.0 and init.images[0].max() == 1.0
     for key in ("pa", "lat"):
         view = result.views[key]
-        assert torch.allclose(view.init.pose_native.double(), start[key], atol=1e-3)
+        np.testing.assert_allclose(view.init.pose_native, start[key], atol=1e-6)
         # Identity proposals never strictly improve mNCC: one proposal, rejected.
         assert len(view.refine.proposals) == 1 and not view.refine.proposals[0].accepted
-        assert torch.allclose(view.refine.pose.double(), start[key], atol=1e-3)
+        np.testing.assert_allclose(view.refine.pose, start[key], atol=1e-6)
     assert refine.calls == 2
     assert {"prepare", "calibration", "init", "refine", "tto", "done"} <= set(stages)
+    assert result.engine["render_px"] == ORACLE_RENDER_PX
     metrics = truth_metrics(result, runs, load_truth(case / "cta.nii.gz"))
     for key in ("pa", "lat"):
         before, after = metrics[key]["init"], metrics[key]["final"]
         assert before["mpcd_mm"] > 3.0, before
-        # The issue asks for <= 1 mm. On the phantom's simulated MAPs (clipped to a head
-        # silhouette by CONVENTIONS 5, noise-textured) the GeoReg objective's own optimum
-        # lies 1-4.5 mm from the truth (its mNCC at the TTO result exceeds that at the true
-        # pose), so this checks a large gain and <= TTO_ORACLE_MPCD_MM; the optimiser
-        # itself reaches <= 1 mm on a consistent target (next test).
+        # On the phantom's simulated MAPs the GeoReg objective's own optimum lies 1-4.5 mm from
+        # the truth, so this checks a large gain and <= TTO_ORACLE_MPCD_MM; the optimiser itself
+        # reaches <= 1 mm on a consistent target (next test).
         assert after["mpcd_mm"] <= TTO_ORACLE_MPCD_MM, (key, before["mpcd_mm"], after["mpcd_mm"])
         assert after["mpcd_mm"] < 0.6 * before["mpcd_mm"] or after["mpcd_mm"] <= 1.0
         assert after["rotation_error_deg"] < before["rotation_error_deg"]
@@ -138,6 +147,7 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
     assert np.allclose(np.asarray(pa["pose_ras"]), cta.centred_to_ras @ np.asarray(pa["pose_centred"]))
     assert len(record["tto_trace"]) == C.TTO_ITERATIONS + 1
     assert pa["quality"]["flag"] in ("ok", "doubtful", "failed")
+    assert record["engine"]["backend"] == "torch" and record["options"]["tto_px"] == 128
     # Overlays: one PNG per view, three stages side by side, vessels drawn in colour.
     pngs = write_overlays(result, case / "overlays", load_truth(case / "cta.nii.gz").carotid_points_mm)
     assert [p.name for p in pngs] == ["overlay_pa.png", "overlay_lat.png"]
@@ -155,76 +165,75 @@ def test_tto_reaches_one_mm_on_a_consistent_target(phantom_case):
     cta = load_cta(case / "cta.nii.gz")
     labels = load_cta(case / "labels.nii.gz", check_hu=False)
     runs = {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
-    prep = prepare_case(cta, runs, segmentation=labels.like((labels.array >= 2).astype(np.uint8)),
-                        options=RegistrationOptions(tto_px=128, device="cpu"))
+    prep = prepare_case(cta, runs, segmentation=labels.like((labels.array >= 2).astype(np.uint8)), tto_px=128)
+    renderer = TorchRenderer(prep.volume)
     views = []
     for key in ("pa", "lat"):
-        view = prep.tto_view(key, _perturb(truth.poses[key]))
-        with torch.no_grad():
-            view.target = prep.drr(torch.as_tensor(truth.poses[key], dtype=torch.float32)[None], detector=view.detector,
-                                   channels=(0,))
-        views.append(view)
-    result = run_tto(prep.drr, views, C.TTO_ITERATIONS, cranium_channel=CRANIUM_CHANNEL)
+        p = prep.views[key]
+        target = renderer.render(truth.poses[key], p.tto_detector, ("total",))[0]
+        views.append(TTOView(key, target, p.tto_mask, p.tto_detector, _perturb(truth.poses[key])))
+    result = run_tto(renderer, views, TTOSchedule(C.TTO_ITERATIONS))
     for view in views:
-        run, true_pose = runs[view.name], torch.as_tensor(truth.poses[view.name])
+        run, true_pose = runs[view.name], truth.poses[view.name]
         before = evaluate_pose(view.pose, true_pose, run.detector, run.angles.sod_mm, truth.carotid_points_mm)
         after = evaluate_pose(result.poses[view.name], true_pose, run.detector, run.angles.sod_mm, truth.carotid_points_mm)
         assert before["mpcd_mm"] > 5.0, before
         assert after["mpcd_mm"] <= TTO_CONSISTENT_MPCD_MM, (view.name, before["mpcd_mm"], after["mpcd_mm"])
         assert after["rotation_error_deg"] < 0.5
+    # The trace says which steps ran at half size (coarse to fine) and keeps the best full-size pose.
+    sizes = [e["size"] for e in result.trace]
+    assert sizes[: TTOSchedule().coarse_steps()] == ["half"] * TTOSchedule().coarse_steps() and sizes[-1] == "full"
 
 
-def _blob_case():
+def _blob_renderer() -> NumpyRenderer:
     n, sp = 48, 4.0
-    x = (torch.arange(n) - (n - 1) / 2) * sp
-    zz, yy, xx = torch.meshgrid(x, x, x, indexing="ij")
-    vol = sum(torch.exp(-((xx - a) ** 2 + (yy - b) ** 2 + (zz - c) ** 2) / (2 * s**2))
-              for a, b, c, s in [(20, 10, 5, 8), (-30, -20, 30, 10), (0, 40, -20, 7), (35, -35, -10, 9)])
+    x = (np.arange(n) - (n - 1) / 2) * sp
+    zz, yy, xx = np.meshgrid(x, x, x, indexing="ij")
+    blobs = sum(np.exp(-((xx - a) ** 2 + (yy - b) ** 2 + (zz - c) ** 2) / (2 * s**2))
+                for a, b, c, s in [(20, 10, 5, 8), (-30, -20, 30, 10), (0, 40, -20, 7), (35, -35, -10, 9)])
     aff = np.diag([sp, sp, sp, 1.0])
     aff[:3, 3] = -sp * (n - 1) / 2
-    return DRR(vol, aff, Detector.model().resized(64))
+    return NumpyRenderer(RenderVolume(Volume((blobs * 1000.0 - 900.0).astype(np.float32), aff)))
 
 
 def test_calibration_with_perfect_network_recovers_native_pose():
-    drr = _blob_case()
-    g = torch.Generator().manual_seed(5)
-    A = RigidTransform.from_euler_zyx(torch.randn(1, 3, generator=g, dtype=torch.float64) * 0.2,
-                                      torch.randn(1, 3, generator=g, dtype=torch.float64) * 20).matrix
-    t_cal = isopose(C.VIEW_PA, dtype=torch.float64).matrix
-    T_true = RigidTransform.from_euler_zyx(torch.tensor([[1.5, 0.05, -0.1]], dtype=torch.float64),
-                                           torch.tensor([[3.0, 700.0, -5.0]], dtype=torch.float64)).matrix
-    A_inv = torch.linalg.inv(A)
+    renderer = _blob_renderer()
+    g = np.random.default_rng(5)
+    A = pose_from_params(g.normal(0, 0.2, 3), g.normal(0, 20, 3))
+    t_cal = isopose(C.VIEW_PA)
+    T_true = pose_from_params(np.array([1.5, 0.05, -0.1]), np.array([3.0, 700.0, -5.0]))
+    A_inv = np.linalg.inv(A)
     oracle = OracleInit([A_inv @ t_cal, A_inv @ T_true])
-    cal = calibrate(drr, oracle)
-    assert torch.allclose(cal.frame_transfer.double(), A, atol=1e-4)
+    cal = calibrate(renderer, oracle, ORACLE_RENDER_PX)
+    np.testing.assert_allclose(cal.frame_transfer, A, atol=1e-9)
     # The calibration image is the min-max DRR at the PA isopose in the model geometry.
-    assert oracle.images[0].shape == (1, 1, C.MODEL_DETECTOR_PX, C.MODEL_DETECTOR_PX) or oracle.images[0].shape[-1] == 64
-    est = calibrated_init(torch.rand(1, 1, 64, 64), True, oracle, cal)
-    assert torch.allclose(est.pose_native.double(), T_true, atol=1e-3)
+    assert oracle.images[0].shape == (1, 1, C.MODEL_DETECTOR_PX, C.MODEL_DETECTOR_PX)
+    np.testing.assert_allclose(oracle.images[0], render_model_view(renderer, t_cal, ORACLE_RENDER_PX))
+    est = calibrated_init(np.random.rand(1, 1, 256, 256), True, oracle, cal)
+    np.testing.assert_allclose(est.pose_native, T_true, atol=1e-9)
     assert est.view == C.VIEW_LAT_PLUS
 
 
 def test_greedy_accepts_improvement_and_stops_at_first_rejection():
-    drr = _blob_case()
-    T_true = isopose(C.VIEW_PA).matrix
-    start = _perturb(T_true[0].double().numpy(), (4.0, 0.0, 3.0), (8.0, 0.0, -6.0)).float()
-    render = lambda d, pose: d(pose, channels=(0,))  # noqa: E731 (model detector of the blob case: 64 px)
-    target = render(drr, T_true)
+    renderer = _blob_renderer()
+    T_true = isopose(C.VIEW_PA)
+    start = _perturb(T_true, (4.0, 0.0, 3.0), (8.0, 0.0, -6.0))
+    target = render_model_view(renderer, T_true, ORACLE_RENDER_PX)
     # First residual brings the pose exactly to the truth (improves); the second moves it away (worse).
-    D_good = start @ torch.linalg.inv(T_true)  # inverse(D) @ start = T_true
-    D_bad = torch.linalg.inv(_perturb(T_true[0].double().numpy(), (10.0, 5.0, 0.0), (30.0, 0.0, 0.0)).float() @ torch.linalg.inv(T_true))
-    oracle = OracleRefine([D_good, D_bad, torch.eye(4)[None]])
-    trace = greedy_refine(drr, target, start, C.VIEW_PA, oracle, max_proposals=5, render=render)
+    D_good = start @ invert(T_true)  # inverse(D) @ start = T_true
+    D_bad = invert(_perturb(T_true, (10.0, 5.0, 0.0), (30.0, 0.0, 0.0)) @ invert(T_true))
+    oracle = OracleRefine([D_good, D_bad, np.eye(4)])
+    trace = greedy_refine(renderer, target, start, C.VIEW_PA, oracle, ORACLE_RENDER_PX, max_proposals=5)
     assert [p.accepted for p in trace.proposals] == [True, False]
     assert oracle.calls == 2
-    assert torch.allclose(trace.pose, T_true, atol=1e-4)
-    assert trace.mncc > trace.start_mncc and trace.mncc == pytest.approx(float(mncc(target, render(drr, T_true))), abs=1e-4)
+    np.testing.assert_allclose(trace.pose, T_true, atol=1e-9)
+    assert trace.mncc > trace.start_mncc
+    assert trace.mncc == pytest.approx(mncc(target[0, 0], render_model_view(renderer, T_true, ORACLE_RENDER_PX)[0, 0]))
 
 
 def test_cancel_hook_stops_a_stage():
-    drr = _blob_case()
-    T = isopose(C.VIEW_PA).matrix
-    target = drr(T, channels=(0,))
+    renderer = _blob_renderer()
+    T = isopose(C.VIEW_PA)
+    target = render_model_view(renderer, T, ORACLE_RENDER_PX)
     with pytest.raises(RegistrationCancelled, match="refine"):
-        greedy_refine(drr, target, T, C.VIEW_PA, OracleRefine([]), render=lambda d, p: d(p, channels=(0,)),
-                      monitor=Monitor(cancel=lambda: True))
+        greedy_refine(renderer, target, T, C.VIEW_PA, OracleRefine([]), ORACLE_RENDER_PX, monitor=Monitor(cancel=lambda: True))

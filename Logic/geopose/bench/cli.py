@@ -14,14 +14,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import torch
-
 from .. import __version__
-from .. import contract as C
-from ..dsa import check_clip_percentiles, model_clip_arg
-from ..nets import make_predictors
-from ..nets.model_io import model_files
-from ..register import resolve_device
+from ..register.cli import options_from_args, registration_option_args
+from ..register.pipeline import resolve_engine
 from ..resources import default_models_dir
 from .cases import headsq_case, phantom_case, training_seeds
 from .report import convergence_figure, markdown, summarise
@@ -40,15 +35,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder (bench.md, bench.json, tto_convergence.png)")
     p.add_argument("--seed-start", type=int, default=DEFAULT_SEED_START, help="first phantom seed")
     p.add_argument("--long-subjects", type=int, help="subjects that also get the long native TTO (default: all)")
-    p.add_argument("--iterations", type=int, default=C.TTO_ITERATIONS, help="short TTO budget")
     p.add_argument("--long-iterations", type=int, default=400, help="long native TTO budget (0: skip)")
     p.add_argument("--spacing-mm", type=float, default=1.0, help="phantom voxel size (mm)")
     p.add_argument("--headsq", help="the real head CT headsq (quarter_sidecar.mhd) for a transfer run")
     p.add_argument("--models", help="model folder (default: the shipped models)")
-    p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch")
-    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    p.add_argument("--tto-px", type=int, help="TTO image size (default: 256 on CUDA, 128 on CPU)")
-    model_clip_arg(p)
+    registration_option_args(p)
     p.set_defaults(func=run)
 
 
@@ -72,10 +63,9 @@ def run(args: argparse.Namespace) -> int:
         overlap = sorted(set(seeds) & training_seeds(manifest))
         if overlap:
             raise ValueError(f"seeds {overlap[:5]} were used to train these models: choose --seed-start beyond them")
-    device = resolve_device(args.device)
-    init, refine = make_predictors(model_files(models_dir), backend=args.backend, device=device)
-    settings = BenchSettings(args.iterations, args.long_iterations, device=str(device), tto_px=args.tto_px,
-                             model_clip_percentiles=check_clip_percentiles(args.model_clip_percentiles))
+    options = options_from_args(args)
+    backend, device, models = resolve_engine(options, models_dir)
+    settings = BenchSettings(options, args.long_iterations)
     n_long = args.subjects if args.long_subjects is None else args.long_subjects
     cases: list[dict] = []
     t_start = time.perf_counter()
@@ -85,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
             tag = f"phantom-{seed}{'' if long else SHORT_CASE_SUFFIX}"
             result = _load_or_run(
                 out / "cases" / f"{tag}.json",
-                lambda: evaluate_case(phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm), init, refine, settings, long=long),
+                lambda: evaluate_case(phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm), models, settings, long=long),
             )
             cases.append(result)
             elapsed = time.perf_counter() - t_start
@@ -95,13 +85,13 @@ def run(args: argparse.Namespace) -> int:
                   f"elapsed {elapsed / 60:.1f} min", flush=True)
         transfer = None
         if args.headsq:
-            transfer = _load_or_run(out / "cases" / "headsq.json", lambda: evaluate_case(headsq_case(args.headsq), init, refine, settings))
+            transfer = _load_or_run(out / "cases" / "headsq.json", lambda: evaluate_case(headsq_case(args.headsq), models, settings))
     summary = summarise(cases, args.iterations)
     header = (
         f"# GeoPose benchmark on {len(cases)} held-out phantom subjects\n\n"
         f"Seeds {seeds[0]}..{seeds[-1]} (disjoint from the training seeds), {args.spacing_mm:g} mm phantoms, "
-        f"models `{models_dir.name}` ({args.backend}), device `{device}` ({platform.machine()}, "
-        f"{os.cpu_count()} CPUs, torch {torch.__version__}, {torch.get_num_threads()} threads), geopose {__version__}; "
+        f"models `{models_dir.name}` ({backend}), device `{device}` ({platform.machine()}, "
+        f"{os.cpu_count()} CPUs), geopose {__version__}; "
         f"long native TTO on {min(n_long, len(cases))} subjects.\n\n"
         f"Reproduce: `geopose bench --subjects {args.subjects} --long-subjects {n_long} --spacing-mm {args.spacing_mm:g} "
         f"--out {out}{' --headsq ' + args.headsq if args.headsq else ''}`"

@@ -5,9 +5,9 @@ from ..lazy import lazy_exports
 __all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
-        "cli_args": ("geometry_override_args", "geometry_overrides_from_args", "model_clip_arg"),
+        "cli_args": ("geometry_override_args", "geometry_overrides_from_args"),
         "preprocess": (
-            "PreparedDSA", "bilateral", "check_clip_percentiles", "clip_intensities", "dsa_cranium_mask", "intensity_unit", "minmax",
+            "PreparedDSA", "bilateral", "clip_intensities", "dsa_cranium_mask", "intensity_unit", "minmax",
             "preprocess_dsa", "resample_to_detector", "resample_to_model_sdd", "temporal_map",
         ),
         "readers": ("read_dsa", "run_from_geometry", "sidecar_path"),

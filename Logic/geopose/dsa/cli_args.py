@@ -1,14 +1,13 @@
-"""One definition of the geometry-override command-line options (register command, Slicer)."""
+"""One definition of the geometry-override command-line options (register command)."""
 
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
-from .. import contract as C
 from .run import GEOMETRY_SOURCES, cli_option
 
-__all__ = ["geometry_override_args", "geometry_overrides_from_args", "model_clip_arg"]
+__all__ = ["geometry_override_args", "geometry_overrides_from_args"]
 
 _HELP = {
     "primary_deg": "C-arm primary angle in deg, LAO positive",
@@ -18,14 +17,6 @@ _HELP = {
     "pixel_spacing_mm": "detector-plane pixel spacing in mm: ROW COL, or one value for square pixels",
     "principal_offset_mm": "camera offset (x0, y0) in mm of the image centre from the central ray",
 }
-
-
-def model_clip_arg(parser: argparse.ArgumentParser) -> None:
-    """Add ``--model-clip-percentiles LO HI`` (dest ``model_clip_percentiles``, a tuple)."""
-    parser.add_argument(
-        "--model-clip-percentiles", type=float, nargs=2, metavar=("LO", "HI"), default=C.MAP_CLIP_PERCENTILES,
-        help="percentiles the networks' MAP is clipped to (default: CONVENTIONS 5); the TTO target keeps the default",
-    )
 
 
 def _clean(prefix: str) -> str:

@@ -15,12 +15,12 @@ import SimpleITK as sitk
 
 from .. import contract as C
 from ..geometry.detector import Detector
-from ..nets.preprocess import normalize_minmax
+from ..images import block_mean, normalize_minmax
+from ..options import check_clip_percentiles
 from .run import DSAInputError, DSARun
 
 __all__ = [
     "PreparedDSA",
-    "check_clip_percentiles",
     "temporal_map",
     "dsa_cranium_mask",
     "clip_intensities",
@@ -37,6 +37,10 @@ __all__ = [
 TTO_TARGET_PX = 256
 #: The bilateral range sigma is in units of an 8-bit image (see :func:`intensity_unit`).
 REFERENCE_LEVELS = 255.0
+#: The DSA cranium mask is computed on the MAP block-averaged to at most this many pixels per side.
+MASK_WORK_PX = 256
+#: Empty cells around the bilateral grid (its blur reaches two cells).
+_GRID_PAD = 2
 
 
 def temporal_map(frames: np.ndarray) -> np.ndarray:
@@ -58,27 +62,22 @@ def dsa_cranium_mask(image: np.ndarray) -> np.ndarray:
     """Head (cranium) mask of an attenuation-like MAP ``(H, W)`` as uint8 {0, 1}.
 
     Method: Otsu threshold (head brighter than the air around it), the largest
-    8-connected component, holes filled. Raises when the image is constant.
+    8-connected component, holes filled; on the MAP block-averaged to at most
+    ``MASK_WORK_PX`` pixels per side, then repeated back to the full matrix (the mask
+    is resampled to the 256-px model geometry afterwards). Raises when the image is constant.
     """
     image = np.asarray(image, dtype=np.float32)
     if image.ndim != 2:
         raise DSAInputError(f"dsa_cranium_mask needs a 2D MAP, got shape {image.shape}")
     if image.max() <= image.min():
         raise DSAInputError("the MAP is constant: no head to mask; check the run or supply a mask")
-    otsu = sitk.OtsuThreshold(sitk.GetImageFromArray(image), 0, 1)
-    return _largest_component_filled(sitk.GetArrayFromImage(otsu) > 0)
-
-
-def check_clip_percentiles(percentiles) -> tuple[float, float]:
-    """``(lo, hi)`` with ``0 <= lo < hi <= 100`` as floats, or a :class:`ValueError` naming the remedy."""
-    try:
-        lo, hi = (float(p) for p in percentiles)
-    except (TypeError, ValueError):
-        raise ValueError(f"clip percentiles must be two numbers (lo, hi), got {percentiles!r}") from None
-    if not 0.0 <= lo < hi <= 100.0:
-        raise ValueError(f"clip percentiles ({lo:g}, {hi:g}) must satisfy 0 <= lo < hi <= 100, e.g. (2, 98) or the "
-                         f"default {C.MAP_CLIP_PERCENTILES}")
-    return lo, hi
+    f = max(1, int(np.ceil(max(image.shape) / MASK_WORK_PX)))
+    small = block_mean(image, (f, f)) if f > 1 else image
+    otsu = sitk.OtsuThreshold(sitk.GetImageFromArray(small), 0, 1)
+    mask = _largest_component_filled(sitk.GetArrayFromImage(otsu) > 0)
+    if f > 1:
+        mask = np.repeat(np.repeat(mask, f, axis=0), f, axis=1)[: image.shape[0], : image.shape[1]]
+    return np.ascontiguousarray(mask)
 
 
 def clip_intensities(
@@ -108,19 +107,13 @@ def clip_intensities(
 
 
 def _gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
-    """Separable Gaussian (radius ``ceil(3 sigma)``, edge values repeated) along rows then columns."""
-    for axis, sigma in enumerate(sigma_px):
-        if sigma <= 0:
-            continue
-        radius = max(1, int(np.ceil(3 * sigma)))
-        k = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
-        k /= k.sum()
-        pad = [(0, 0), (0, 0)]
-        pad[axis] = (radius, radius)
-        padded = np.pad(image, pad, mode="edge")
-        n = image.shape[axis]
-        image = sum(w * np.take(padded, np.arange(i, i + n), axis=axis) for i, w in enumerate(k))
-    return image
+    """Gaussian blur (sd ``sigma_px`` along rows, columns; edge values repeated), float64."""
+    if max(sigma_px) <= 0:
+        return np.asarray(image, dtype=np.float64)
+    img = sitk.GetImageFromArray(np.asarray(image, dtype=np.float64))
+    variance = [float(sigma_px[1]) ** 2, float(sigma_px[0]) ** 2]  # sitk order: x (columns), y (rows)
+    out = sitk.DiscreteGaussian(img, variance=variance, maximumKernelWidth=256, useImageSpacing=False)
+    return sitk.GetArrayFromImage(out)
 
 
 def _bilinear(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -186,11 +179,39 @@ def bilateral(
     spatial_sigma_px: float = C.BILATERAL_SPATIAL_SIGMA_PX,
     range_sigma: float = C.BILATERAL_RANGE_SIGMA,
 ) -> np.ndarray:
-    """Edge-preserving bilateral filter (SimpleITK), spatial sigma in pixels, range sigma
-    in image intensity units."""
-    img = sitk.GetImageFromArray(np.asarray(image, dtype=np.float32))
-    out = sitk.Bilateral(img, domainSigma=float(spatial_sigma_px), rangeSigma=float(range_sigma))
-    return sitk.GetArrayFromImage(out).astype(np.float32)
+    """Edge-preserving bilateral filter, spatial sigma in pixels, range sigma in image intensity
+    units, as a bilateral grid (Paris and Durand 2006): the image is splatted (trilinearly) onto
+    a grid of one cell per sigma in space and range, the grid is blurred with a unit Gaussian,
+    and sliced back at every pixel. Within a few per cent of the brute-force filter, at a
+    thousandth of its cost for the 11-px sigma of CONVENTIONS 5."""
+    x = np.asarray(image, dtype=np.float64)
+    if x.ndim != 2:
+        raise DSAInputError(f"bilateral needs a 2D image, got shape {x.shape}")
+    lo = float(x.min())
+    rows, cols = np.mgrid[: x.shape[0], : x.shape[1]]
+    coords = [rows / spatial_sigma_px + _GRID_PAD, cols / spatial_sigma_px + _GRID_PAD, (x - lo) / range_sigma + _GRID_PAD]
+    shape = tuple(int(np.ceil(c.max())) + _GRID_PAD + 1 for c in coords)
+    base = [np.floor(c).astype(np.int64) for c in coords]
+    frac = [c - b for c, b in zip(coords, base)]
+    strides = (shape[1] * shape[2], shape[2], 1)
+    grid = np.zeros((2, int(np.prod(shape))))
+    corners = []
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                w = (frac[0] if dz else 1 - frac[0]) * (frac[1] if dy else 1 - frac[1]) * (frac[2] if dx else 1 - frac[2])
+                idx = (base[0] + dz) * strides[0] + (base[1] + dy) * strides[1] + (base[2] + dx)
+                corners.append((idx.ravel(), w.ravel()))
+                grid[0] += np.bincount(idx.ravel(), weights=(w * x).ravel(), minlength=grid.shape[1])
+                grid[1] += np.bincount(idx.ravel(), weights=w.ravel(), minlength=grid.shape[1])
+    grid = grid.reshape(2, *shape)
+    kernel = np.array([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0  # binomial, sd 1 cell
+    for axis in (1, 2, 3):
+        grid = sum(w * np.roll(grid, k - 2, axis=axis) for k, w in enumerate(kernel))
+    flat = grid.reshape(2, -1)
+    num = sum(flat[0][idx] * w for idx, w in corners)
+    den = sum(flat[1][idx] * w for idx, w in corners)
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), x.ravel()).reshape(x.shape).astype(np.float32)
 
 
 def minmax(image: np.ndarray) -> np.ndarray:

@@ -1,7 +1,9 @@
-"""Image, vessel and pose metrics: (multiscale) NCC, Dice, mPCD, clDice, pose errors.
+"""Image similarity and registration metrics.
 
-``measures.py`` holds them in torch / numpy as each needs; ``numpy_similarity.py``
-the NCC family in numpy for the torch-free inference path.
+``similarity.py``: the NCC family in numpy (scores: the refinement gate, the final
+mNCC, the benchmark); ``losses.py``: the same similarities and the Dice loss in torch,
+differentiable (the TTO objective, training); ``measures.py``: mPCD, clDice, pose
+errors and view accuracy (numpy).
 """
 
 from ..lazy import lazy_exports
@@ -9,9 +11,11 @@ from ..lazy import lazy_exports
 __all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
+        "similarity": ("ncc", "local_ncc", "mncc"),
+        "losses": ("ncc_similarity", "local_ncc_similarity", "mncc_similarity", "generalized_dice_loss"),
         "measures": (
-            "ncc", "local_ncc", "mncc", "generalized_dice_loss", "MPCD", "mpcd", "mask_points", "skeletonize",
-            "cldice", "PoseErrors", "pose_errors", "double_geodesic_mm", "view_accuracy",
+            "MPCD", "mpcd", "mask_points", "skeletonize", "cldice", "PoseErrors", "pose_errors", "double_geodesic_mm",
+            "view_accuracy",
         ),
     },
 )

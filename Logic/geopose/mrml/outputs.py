@@ -15,7 +15,7 @@ import slicer
 import vtk
 
 from ..geometry.detector import AP_REORIENT, Detector
-from ..render.numpy_drr import NumpyDRR
+from ..render.numpy_drr import NumpyKernel
 from ..volume import Volume
 from .plane import detector_ijk_to_ras, detector_index_to_camera
 from .scene import matrix_from_vtk, matrix_to_vtk
@@ -121,7 +121,8 @@ def project_labels(
     ijk_to_world = labels.ijk_to_centred @ shift
     spacing = np.asarray(labels.spacing_mm)
     threshold = PROJECTION_THRESHOLD_VOXELS * spacing.min() if threshold_mm is None else float(threshold_mm)
-    return NumpyDRR(crop, ijk_to_world, detector)(pose_centred) > threshold
+    kernel = NumpyKernel(crop, ijk_to_world, float(spacing.min()))
+    return kernel(pose_centred, detector, tuple(range(len(values)))) > threshold
 
 
 def projected_segmentation_node(

@@ -20,17 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-import torch
-
-from ..geometry import pose_from_carm_angles
-from ..nets import make_predictors
-from ..nets.model_io import model_files
+from ..geometry.poses import pose_from_carm_angles
+from ..options import RegistrationOptions
 from ..phantom import labels as L
 from ..phantom import make_subject
 from ..phantom.dsa import sample_biplane, simulate_dsa
-from ..register import RegistrationOptions, register_case
+from ..register import register_case
 from ..register.evaluate import evaluate_pose
-from ..resources import default_models_dir
 from . import (
     camera_to_ras_points,
     frustum_model_node,
@@ -68,9 +64,8 @@ def build_case(seed: int = 3, spacing_mm: float = 2.0, matrix_px: int = 320):
     rng = np.random.default_rng(seed)
     acqs, iso = sample_biplane(rng, subject)
     sims = {key: simulate_dsa(subject, a, a.pose(iso), rng, max_matrix_px=matrix_px) for key, a in zip(("pa", "lat"), acqs)}
-    init, refine = make_predictors(model_files(default_models_dir()), device="cpu")
     case = register_case(
-        subject.cta, {k: s.run for k, s in sims.items()}, init=init, refine=refine,
+        subject.cta, {k: s.run for k, s in sims.items()},
         cranium_mask=subject.labels.like(L.cranium_mask(subject.labels.array).astype(np.uint8)),
         segmentation=subject.labels.like(L.vessel_mask(subject.labels.array).astype(np.uint8)),
         options=RegistrationOptions(device="cpu"),
@@ -83,12 +78,12 @@ def build_case(seed: int = 3, spacing_mm: float = 2.0, matrix_px: int = 320):
     for key, acq in zip(("pa", "lat"), acqs):
         sim = sims[key]
         det = sim.run.detector
-        poses = {"before": pose_from_carm_angles(acq.angles).matrix[0].numpy(), "after": case.views[key].final_pose[0].double().numpy()}
+        poses = {"before": pose_from_carm_angles(acq.angles), "after": case.views[key].final_pose}
         view = {"detector": det}
         for when, pose in poses.items():
             pose_ras = subject.cta.centred_to_ras @ pose
             name = f"{acq.view_role} {when}"
-            err = evaluate_pose(torch.as_tensor(pose), torch.as_tensor(sim.pose), det, acq.angles.sod_mm, carotid)
+            err = evaluate_pose(pose, sim.pose, det, acq.angles.sod_mm, carotid)
             view[when] = {
                 "pose_ras": pose_ras,
                 "mpcd_mm": err["mpcd_mm"],

@@ -13,8 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from ..contract import VIEW_EMBEDDING_DIM
-from .decoding import NUM_VIEWS, as_view_labels, decode_init_pose, mirror_averaged_logits, residual_from_raw, select_view
-from .preprocess import normalize_minmax
+from .decoding import NUM_VIEWS
 from .resnet import BackboneConfig, ResNetEncoder
 
 #: Hidden width of the Refine fusion layer of the published model.
@@ -52,6 +51,15 @@ class NetConfig:
 #: The published models' configurations (ResNet-34, width 64).
 PUBLISHED_INIT_CONFIG = NetConfig("init")
 PUBLISHED_REFINE_CONFIG = NetConfig("refine")
+
+
+def _view_tensor(view: Tensor | int, batch: int, device: torch.device) -> Tensor:
+    """View labels (0 LAT-, 1 PA, 2 LAT+) as int64 ``(batch,)`` on ``device``; an int is broadcast."""
+    labels = torch.as_tensor(view, dtype=torch.int64, device=device)
+    labels = labels.expand(batch) if labels.ndim == 0 else labels
+    if labels.shape != (batch,) or bool(((labels < 0) | (labels >= NUM_VIEWS)).any()):
+        raise ValueError(f"view labels must be in 0..{NUM_VIEWS - 1}, scalar or shape ({batch},), got {labels.tolist()}")
+    return labels
 
 
 def _check_images(name: str, image: Tensor) -> None:
@@ -99,7 +107,7 @@ class InitNet(nn.Module):
     def forward(self, image: Tensor, view: Tensor) -> tuple[Tensor, Tensor]:
         _check_images("image", image)
         features = self.net(image)
-        view = as_view_labels(view, image.shape[0], image.device)
+        view = _view_tensor(view, image.shape[0], image.device)
         return self._pose_raw(features, view), self.net.fc.view(features)
 
     def forward_all_views(self, image: Tensor) -> tuple[Tensor, Tensor]:
@@ -114,27 +122,6 @@ class InitNet(nn.Module):
     def domain_logit(self, image: Tensor) -> Tensor:
         """Training-only domain classifier logit ``(B, 1)``."""
         return self.net.fc.domain(self.net(image))
-
-    @torch.no_grad()
-    def predict(self, image: Tensor, is_lateral: Tensor | None = None, mirror: bool = True) -> tuple[Tensor, Tensor, Tensor]:
-        """Inference: image ``(B, 1, H, W)`` (any range; min-max applied) and PA/lateral metadata.
-
-        Returns pose ``(B, 4, 4)`` (camera-to-world, centred frame, mm), view labels
-        ``(B,)`` chosen by :func:`select_view`, and the view logits ``(B, 3)``. With
-        ``mirror`` the logits are averaged with those of the column-mirrored images
-        (:func:`mirror_averaged_logits`; one pass of 2B images), which decides the lateral
-        side more reliably than the published single-image rule; poses are unaffected.
-        """
-        image = normalize_minmax(image)
-        batch = image.shape[0]
-        raw_all, logits = self.forward_all_views(torch.cat((image, image.flip(-1))) if mirror else image)
-        if mirror:
-            raw_all, logits = raw_all[:batch], mirror_averaged_logits(logits[:batch], logits[batch:])
-        view = select_view(logits, is_lateral)
-        raw = raw_all[torch.arange(raw_all.shape[0], device=raw_all.device), view]
-        return decode_init_pose(raw, view), view, logits
-
-    decode = staticmethod(decode_init_pose)
 
 
 class RefineBody(nn.Module):
@@ -171,13 +158,8 @@ class RefineNet(nn.Module):
         a = self.net.backbone(target)
         b = self.net.backbone(render)
         fused = self.net.fusion(torch.cat((a, b, a - b, (a - b).abs(), a * b), dim=1))
-        view = as_view_labels(view, target.shape[0], target.device)
+        view = _view_tensor(view, target.shape[0], target.device)
         return self.net.head(torch.cat((fused, self.net.view_emb(view)), dim=1))
-
-    @torch.no_grad()
-    def predict_residual(self, target: Tensor, render: Tensor, view: Tensor | int) -> Tensor:
-        """Residual ``D`` ``(B, 4, 4)`` (min-max applied to both images); update ``T_new = inverse(D) @ T``."""
-        return residual_from_raw(self(normalize_minmax(target), normalize_minmax(render), view))
 
 
 def build_model(config: NetConfig) -> InitNet | RefineNet:

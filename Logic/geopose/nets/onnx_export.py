@@ -7,7 +7,7 @@ Graphs (float32, dynamic batch, fixed image size given at export):
   run outside the graph (:mod:`.decoding`), identically for both backends.
 - Refine: ``target, render (B,1,H,W)`` and ``view (B,) int64`` -> ``raw_residual (B,6)``.
 
-Inputs are expected min-max normalised; the runners (``onnx_runtime.py``) apply
+Inputs are expected min-max normalised; the predictors (``predictors.py``) apply
 :func:`normalize_minmax`. ``weights="float16"`` stores the weights in half precision
 with a Cast to float32 in front of their users (half the file; the arithmetic stays float32).
 """
@@ -26,7 +26,7 @@ from torch import Tensor, nn
 
 from ..contract import MODEL_DETECTOR_PX
 from .models import InitNet, RefineNet
-from .onnx_runtime import KIND_METADATA_KEY
+from .predictors import KIND_METADATA_KEY
 
 ONNX_OPSET = 17
 WEIGHT_DTYPES = ("float32", "float16")

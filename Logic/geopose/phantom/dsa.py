@@ -26,7 +26,8 @@ from torch.nn import functional as F
 
 from ..dsa import DSARun
 from ..dsa.run import LAT_ROLE, PA_ROLE
-from ..geometry.carm import CArmAngles, Detector, pose_from_carm_angles, project_points
+from ..geometry.detector import CArmAngles, Detector
+from ..geometry.poses import pose_from_carm_angles, project_points
 from ..geometry.rigid import RigidTransform
 from ..render import DRR
 from . import labels as L
@@ -89,11 +90,10 @@ class Acquisition:
 
     def pose(self, isocentre_mm: np.ndarray) -> RigidTransform:
         """True camera-to-world pose (centred native frame) with the isocentre at ``isocentre_mm``."""
-        m = pose_from_carm_angles(self.angles).matrix.clone()
-        rot = torch.as_tensor(np.asarray(self.table_rotation, float), dtype=m.dtype)
-        m[0, :3, :] = rot @ m[0, :3, :]
-        m[0, :3, 3] += torch.as_tensor(np.asarray(isocentre_mm, float), dtype=m.dtype)
-        return RigidTransform(m)
+        m = pose_from_carm_angles(self.angles)
+        m[:3, :] = np.asarray(self.table_rotation, float) @ m[:3, :]
+        m[:3, 3] += np.asarray(isocentre_mm, float)
+        return RigidTransform(torch.as_tensor(m[None]))
 
 
 def sample_acquisition(rng: np.random.Generator, view_role: str) -> Acquisition:
@@ -296,6 +296,6 @@ def simulate_dsa(
         if not lines:
             continue
         pts = np.concatenate(lines)
-        px, _ = project_points(RigidTransform(p0), det_out, torch.as_tensor(pts))
-        carotids[name] = px[0].numpy()
+        px, _ = project_points(p0[0].numpy(), det_out, pts)
+        carotids[name] = px
     return SyntheticDSA(run, att.max(0), mask, carotids, p0[0].numpy(), injection)

@@ -11,8 +11,10 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+import torch
 
-from ..geometry.carm import Detector, isopose
+from ..geometry.detector import Detector
+from ..geometry.poses import isopose
 from ..render import DRR
 from .. import contract as C
 from .dsa import dsa_renderer, sample_biplane, simulate_dsa
@@ -43,7 +45,7 @@ def make_gallery(seeds: list[int], out: Path, *, spacing_mm: float = 1.0) -> Pat
         axes[row, 1].imshow(hu[:, iso[1]], aspect=sp[2] / sp[0], **win)
         axes[row, 2].imshow(hu[:, :, iso[0]], aspect=sp[2] / sp[1], **win)
         drr = DRR.from_volume(s.cta, Detector.model(), step_mm=1.5)
-        imgs = drr(isopose([C.VIEW_PA, C.VIEW_LAT_PLUS]))[:, 0].detach().numpy()
+        imgs = drr(torch.as_tensor(np.stack([isopose(C.VIEW_PA), isopose(C.VIEW_LAT_PLUS)])))[:, 0].detach().numpy()
         for n in range(2):
             axes[row, 3 + n].imshow(imgs[n], cmap="gray")
         rng = np.random.default_rng([seed, 2])

@@ -1,6 +1,6 @@
-"""GeoPose registration stages: calibration, calibrated Init, gated refinement,
-test-time optimisation, the whole-case pipeline (torch, or numpy + onnxruntime),
-its result record and pictures."""
+"""GeoPose registration: the one pipeline (``pipeline.register_case``) and its stages
+(case preparation, calibration, calibrated Init, gated refinement, test-time
+optimisation), result dataclasses and record, pictures and the ``register`` command."""
 
 from ..lazy import lazy_exports
 
@@ -8,17 +8,12 @@ __all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
         "calibration": ("calibrate", "calibrated_init", "render_model_view"),
-        "gating": ("gated_refinement",),
-        "case": ("VIEW_KEYS", "case_labels", "prepare_views"),
-        "numpy_pipeline": ("register_case_numpy",),
-        "pipeline": ("PreparedCase", "prepare_case", "register_case", "resolve_device"),
+        "case": ("VIEW_KEYS", "PreparedCase", "prepare_case"),
+        "pipeline": ("NO_TORCH_TTO_NOTE", "register_case", "resolve_engine", "score_view", "tto_views"),
         "progress": ("ConsoleProgress", "Monitor", "RegistrationCancelled"),
         "quality": ("Quality", "assess"),
         "refine": ("greedy_refine",),
-        "results": (
-            "Calibration", "CaseRegistration", "InitEstimate", "Proposal", "RefineTrace", "RegistrationOptions",
-            "ViewOutcome",
-        ),
-        "tto": ("TTOResult", "TTOView", "biplanar_penalty", "test_time_optimise"),
+        "results": ("Calibration", "CaseRegistration", "InitEstimate", "Proposal", "RefineTrace", "ViewOutcome"),
+        "tto": ("TTOResult", "TTOSchedule", "TTOView", "biplanar_penalty", "test_time_optimise"),
     },
 )

@@ -2,44 +2,41 @@
 
 One DRR of the native CTA at the PA isopose, one Init pass decoded as PA, and
 ``A = T_iso_PA @ inverse(T_cal)`` moves canonical predictions into the native
-frame: ``T_native = A @ T_pred``.
+frame: ``T_native = A @ T_pred`` (docs/conventions.md section 1). numpy poses; any
+renderer and Init predictor.
 """
 
 from __future__ import annotations
 
-import torch
-from torch import Tensor
+import numpy as np
 
 from .. import contract as C
-from ..geometry import Detector, RigidTransform, isopose
-from ..nets import InitPredictor, normalize_minmax
-from ..render import DRR
+from ..geometry.detector import Detector
+from ..geometry.poses import invert, isopose
+from ..images import normalize_minmax
+from ..nets.predictors import InitPredictor
+from ..render.renderer import Renderer
 from .results import Calibration, InitEstimate
 
-__all__ = ["calibrate", "calibrated_init", "render_model_view"]
+__all__ = ["render_model_view", "calibrate", "calibrated_init"]
 
 
-def render_model_view(drr: DRR, pose: Tensor) -> Tensor:
-    """Min-max DRR (total channel) in the model geometry K0: ``(B, 1, 256, 256)``."""
-    return normalize_minmax(drr(pose, detector=Detector.model(), channels=(0,)))
+def render_model_view(renderer: Renderer, pose: np.ndarray, render_px: int) -> np.ndarray:
+    """Min-max DRR (total channel) in the model geometry K0, rendered at ``render_px`` and
+    resized to 256 x 256 as the networks were trained: ``(1, 1, 256, 256)`` float32."""
+    image = renderer.render(pose, Detector.model(), ("total",), render_px=render_px)
+    return normalize_minmax(image[None])
 
 
-@torch.no_grad()
-def calibrate(drr: DRR, init: InitPredictor) -> Calibration:
+def calibrate(renderer: Renderer, init: InitPredictor, render_px: int) -> Calibration:
     """Render the native CTA at the PA isopose and read Init's canonical pose for it."""
-    dev = drr.density.device
-    t_cal = isopose(C.VIEW_PA, device=dev).matrix
-    image = render_model_view(drr, t_cal)
-    predicted, _, _ = init.predict(image, is_lateral=torch.tensor([False], device=dev))
-    predicted = predicted.to(t_cal.dtype)
-    transfer = t_cal @ RigidTransform(predicted).inverse().matrix
-    return Calibration(t_cal, predicted, transfer, image)
+    t_cal = isopose(C.VIEW_PA)
+    image = render_model_view(renderer, t_cal, render_px)
+    predicted = init.predict(image, is_lateral=False)[0][0]
+    return Calibration(t_cal, predicted, t_cal @ invert(predicted), image)
 
 
-@torch.no_grad()
-def calibrated_init(target: Tensor, is_lateral: bool, init: InitPredictor, calibration: Calibration) -> InitEstimate:
+def calibrated_init(target: np.ndarray, is_lateral: bool, init: InitPredictor, calibration: Calibration) -> InitEstimate:
     """Init on a preprocessed model-geometry target ``(1, 1, 256, 256)`` -> native pose."""
-    lateral = torch.tensor([bool(is_lateral)], device=target.device)
-    pose, view, logits = init.predict(normalize_minmax(target), is_lateral=lateral)
-    pose = pose.to(calibration.frame_transfer.dtype)
-    return InitEstimate(calibration.to_native(pose), pose, int(view[0]), logits)
+    pose, view, logits = init.predict(target, is_lateral=bool(is_lateral))
+    return InitEstimate(calibration.to_native(pose[0]), pose[0], int(view[0]), logits[0])

@@ -8,17 +8,39 @@ from pathlib import Path
 
 from ..cta import load_cta
 from ..cta.io import file_sha256
-from ..dsa import geometry_override_args, geometry_overrides_from_args, model_clip_arg, read_dsa
-from ..nets import make_predictors
-from ..nets.model_io import model_files, read_model_header
-from ..resources import default_models_dir
-from .. import contract as C
+from ..dsa import geometry_override_args, geometry_overrides_from_args, read_dsa
+from ..options import BACKENDS, DEVICES, RegistrationOptions
 from .evaluate import load_truth, truth_metrics
-from .pipeline import register_case, resolve_device
-from .results import RegistrationOptions
+from .pipeline import register_case
 from .progress import ConsoleProgress
 from .record import build_record, write_record
 from .report import write_overlays
+
+#: The options ``geopose register`` (and ``geopose bench``) take, by their RegistrationOptions names.
+OPTION_ARGS = ("backend", "device", "refine_steps", "iterations", "tto_px", "render_px", "model_clip_percentiles",
+               "work_spacing_mm", "biplanar")
+
+
+def registration_option_args(p: argparse.ArgumentParser) -> None:
+    """Add the command-line options of :class:`RegistrationOptions` (defaults: its own)."""
+    d = RegistrationOptions()
+    p.add_argument("--backend", choices=BACKENDS, default=d.backend,
+                   help="torch (torch renderer and networks), onnxruntime (numpy renderer, shipped ONNX graphs), auto")
+    p.add_argument("--device", default=d.device, help=f"{', '.join(DEVICES)} or cuda:N (torch backend)")
+    p.add_argument("--refine-steps", type=int, default=d.refine_steps, help="greedy refinement proposals")
+    p.add_argument("--iterations", type=int, default=d.iterations, help="test-time optimisation steps (0: none)")
+    p.add_argument("--tto-px", type=int, help="TTO image size, pixels along the longer side (default: 256 on CUDA, 128 on CPU)")
+    p.add_argument("--render-px", type=int, help="network-input DRR size (default: the models' training size)")
+    p.add_argument("--model-clip-percentiles", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="percentiles the networks' MAP is clipped to (default: the models' manifest, else 25 75); "
+                   "the TTO target keeps 25 75")
+    p.add_argument("--work-spacing-mm", type=float, help="finest voxel size (mm) the renderers sample (default: the CTA's)")
+    p.add_argument("--biplanar", action="store_true", help="add the biplanar orthogonality term to the TTO")
+
+
+def options_from_args(args: argparse.Namespace) -> RegistrationOptions:
+    """The :class:`RegistrationOptions` the command line gave (validated)."""
+    return RegistrationOptions(**{name: getattr(args, name) for name in OPTION_ARGS})
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,14 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hu-offset", type=float, default=0.0, help="added to the CTA's values to make HU (e.g. -1024)")
     p.add_argument("--cranium-mask", help="CTA cranium mask on the CTA grid (default: computed from the CTA)")
     p.add_argument("--segmentation", help="CTA vessel label map on the CTA grid (default: contrast threshold)")
-    p.add_argument("--models", help="folder with the Init and Refine model files (default: the shipped models)")
-    p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch")
-    p.add_argument("--iterations", type=int, default=C.TTO_ITERATIONS, help="test-time optimisation steps (0: none)")
-    p.add_argument("--refine-steps", type=int, default=C.GREEDY_MAX_PROPOSALS, help="greedy refinement proposals")
-    p.add_argument("--tto-px", type=int, help="TTO image size (pixels along the longer side)")
-    model_clip_arg(p)
-    p.add_argument("--biplanar", action="store_true", help="add the biplanar orthogonality term to the TTO")
-    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
+    p.add_argument("--models", help="folder with the Init and Refine model files and manifest (default: the shipped models)")
+    registration_option_args(p)
     p.add_argument("--out", required=True, help="output folder (result.json, overlay PNGs)")
     geometry_override_args(p, prefix="pa-")
     geometry_override_args(p, prefix="lat-")
@@ -46,10 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     record = register_files(
         args.cta, args.dsa_pa, args.dsa_lat, args.out,
-        cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models, backend=args.backend,
-        hu_offset=args.hu_offset,
-        options=RegistrationOptions(args.refine_steps, args.iterations, args.tto_px, args.biplanar, args.device,
-                                    args.model_clip_percentiles),
+        cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models, hu_offset=args.hu_offset,
+        options=options_from_args(args),
         overrides={k: geometry_overrides_from_args(args, prefix=f"{k}-") for k in ("pa", "lat")},
     )
     print_summary(record, Path(args.out))
@@ -65,7 +79,6 @@ def register_files(
     cranium_mask: str | Path | None = None,
     segmentation: str | Path | None = None,
     models: str | Path | None = None,
-    backend: str = "torch",
     options: RegistrationOptions | None = None,
     overrides: dict[str, dict] | None = None,
     hu_offset: float = 0.0,
@@ -76,9 +89,6 @@ def register_files(
     A ``truth.json`` next to the CTA (a ``geopose phantom`` case) adds accuracy metrics.
     """
     out = Path(out)
-    options = options or RegistrationOptions()
-    device = resolve_device(options.device)
-    options.device = str(device)
     overrides = overrides or {}
     cta = load_cta(cta_path, hu_offset=hu_offset)
     runs = {
@@ -87,10 +97,8 @@ def register_files(
     }
     cranium = load_cta(cranium_mask, check_hu=False) if cranium_mask else None
     seg = load_cta(segmentation, check_hu=False) if segmentation else None
-    files = model_files(Path(models) if models else default_models_dir())
-    init, refine = make_predictors(files, backend=backend, device=device)
     case = register_case(
-        cta, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=seg, options=options,
+        cta, runs, models=models, options=options, cranium_mask=cranium, segmentation=seg,
         progress=progress if progress is not None else ConsoleProgress(),
     )
     truth = load_truth(cta_path)
@@ -100,14 +108,7 @@ def register_files(
     for name, path in (("cranium_mask", cranium_mask), ("segmentation", segmentation)):
         if path:
             inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
-    model_info: dict = {
-        kind: {"path": str(path), "sha256": file_sha256([path]), "architecture": read_model_header(path)["architecture"]}
-        for kind, path in files.items()
-    }
-    model_info["backend"] = backend
-    record = build_record(
-        case, runs, inputs=inputs, models=model_info, truth_metrics=truth_metrics(case, runs, truth) if truth else None
-    )
+    record = build_record(case, runs, inputs=inputs, truth_metrics=truth_metrics(case, runs, truth) if truth else None)
     write_record(record, out / "result.json")
     write_overlays(case, out, truth.carotid_points_mm if truth else None)
     return record

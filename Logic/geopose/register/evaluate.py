@@ -1,5 +1,5 @@
-"""Accuracy of registered poses against ground truth (phantom cases): mPCD,
-clDice and pose errors per view and stage."""
+"""Accuracy of registered poses against ground truth (phantom cases): mPCD, clDice and
+pose errors per view and stage (numpy; renders with the case's renderer)."""
 
 from __future__ import annotations
 
@@ -8,18 +8,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from ..dsa import DSARun
-from ..geometry import Detector, project_points
-from ..metrics import cldice, mpcd, pose_errors
-from ..render import DRR
-from .case import VESSEL_CHANNEL
+from ..geometry.detector import Detector
+from ..geometry.poses import project_points
+from ..metrics import MPCD, cldice, mpcd, pose_errors
+from ..render.renderer import Renderer
 from .results import CaseRegistration
 
-__all__ = ["Truth", "load_truth", "carotid_mpcd", "evaluate_pose", "truth_metrics", "VESSEL_MASK_FRACTION", "SUCCESS_MPCD_MM"]
+__all__ = ["Truth", "load_truth", "carotid_mpcd", "evaluate_pose", "truth_metrics", "vessel_mask", "VESSEL_MASK_FRACTION",
+           "SUCCESS_MPCD_MM"]
 
-#: A projected vessel pixel is one above this fraction of the reference image's maximum.
+#: A projected vessel pixel is one above this fraction of the image's maximum vessel line integral.
 VESSEL_MASK_FRACTION = 0.05
 #: A registration counts as a success below this mPCD (mm at the detector), as in the paper.
 SUCCESS_MPCD_MM = 5.0
@@ -51,44 +51,40 @@ def load_truth(cta_path: str | Path) -> Truth | None:
     return Truth(poses, np.concatenate(carotid), str(truth_file))
 
 
-def _vessel_mask(drr: DRR, pose: torch.Tensor, detector: Detector, channel: int, threshold: float) -> np.ndarray:
-    with torch.no_grad():
-        img = drr(pose.to(drr.density.device, torch.float32), detector=detector, channels=(channel,))[0, 0]
-    return (img > threshold).cpu().numpy()
+def vessel_mask(image: np.ndarray, reference_max: float | None = None) -> np.ndarray:
+    """Projected vessel mask of a vessel-channel image: pixels above ``VESSEL_MASK_FRACTION`` of
+    ``reference_max`` (default: the image's own maximum). The one threshold of the project."""
+    top = float(np.max(image)) if reference_max is None else float(reference_max)
+    return np.asarray(image) > VESSEL_MASK_FRACTION * top if top > 0 else np.zeros(np.shape(image), dtype=bool)
 
 
 def carotid_mpcd(
-    poses: torch.Tensor, true_pose: torch.Tensor, detector: Detector, sod_mm: float, carotid_points_mm: np.ndarray
-) -> list:
-    """mPCD (``geopose.metrics.MPCD`` each) of estimated poses ``(B, 4, 4)`` against ``true_pose``:
-    the carotid points projected with both, the true projection being the reference centreline."""
-    est = torch.as_tensor(poses, dtype=torch.float64).reshape(-1, 4, 4).cpu()
-    ref = torch.as_tensor(true_pose, dtype=torch.float64).reshape(1, 4, 4).cpu()
-    pts = torch.as_tensor(carotid_points_mm, dtype=torch.float64)
-    p_est, _ = project_points(est, detector, pts)
-    p_ref, _ = project_points(ref, detector, pts)
-    return [mpcd(p.numpy(), p_ref[0].numpy(), detector.spacing_mm, sod_mm, detector.sdd_mm) for p in p_est]
+    poses: np.ndarray, true_pose: np.ndarray, detector: Detector, sod_mm: float, carotid_points_mm: np.ndarray
+) -> list[MPCD]:
+    """mPCD of estimated poses ``(B, 4, 4)`` (or one ``(4, 4)``) against ``true_pose``: the carotid
+    points projected with both, the true projection being the reference centreline."""
+    est = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    p_est, _ = project_points(est, detector, carotid_points_mm)
+    p_ref, _ = project_points(np.asarray(true_pose, dtype=np.float64), detector, carotid_points_mm)
+    return [mpcd(p, p_ref, detector.spacing_mm, sod_mm, detector.sdd_mm) for p in p_est]
 
 
 def evaluate_pose(
-    pose: torch.Tensor,
-    true_pose: torch.Tensor,
+    pose: np.ndarray,
+    true_pose: np.ndarray,
     detector: Detector,
     sod_mm: float,
     carotid_points_mm: np.ndarray | None,
-    drr: DRR | None = None,
-    vessel_channel: int | None = None,
+    renderer: Renderer | None = None,
     mask_detector: Detector | None = None,
 ) -> dict:
-    """Metrics of one estimated pose ``(1, 4, 4)`` against the truth on ``detector``.
+    """Metrics of one estimated pose ``(4, 4)`` against the truth on ``detector``.
 
-    Pose errors always; mPCD when carotid points are given (:func:`carotid_mpcd`);
-    clDice compares projected vessel masks rendered on ``mask_detector`` (when a
-    renderer with a vessel channel is given).
+    Pose errors always; mPCD when carotid points are given (:func:`carotid_mpcd`); clDice of the
+    projected vessel masks rendered on ``mask_detector`` when a renderer is given.
     """
-    est = torch.as_tensor(pose, dtype=torch.float64).reshape(1, 4, 4).cpu()
-    ref = torch.as_tensor(true_pose, dtype=torch.float64).reshape(1, 4, 4).cpu()
-    err = pose_errors(est, ref, sdd_mm=detector.sdd_mm)
+    est, ref = np.asarray(pose, dtype=np.float64).reshape(4, 4), np.asarray(true_pose, dtype=np.float64).reshape(4, 4)
+    err = pose_errors(est[None], ref[None], sdd_mm=detector.sdd_mm)
     out = {
         "rotation_error_deg": float(err.rotation_deg[0]),
         "euler_error_deg": err.euler_deg[0].tolist(),
@@ -101,28 +97,22 @@ def evaluate_pose(
         d = carotid_mpcd(est, ref, detector, sod_mm, carotid_points_mm)[0]
         out |= {"mpcd_px": d.px, "mpcd_mm": d.detector_mm, "mpcd_isocentre_mm": d.isocentre_mm,
                 "success": d.detector_mm < SUCCESS_MPCD_MM}
-    if drr is not None and vessel_channel is not None:
+    if renderer is not None:
         det = mask_detector or detector
-        with torch.no_grad():
-            ref_img = drr(ref.to(drr.density.device, torch.float32), detector=det, channels=(vessel_channel,))[0, 0]
-        threshold = VESSEL_MASK_FRACTION * float(ref_img.max())
-        ref_mask = (ref_img > threshold).cpu().numpy()
-        est_mask = _vessel_mask(drr, est, det, vessel_channel, threshold)
+        images = renderer.render(np.stack((ref, est)), det, ("vessels",))[:, 0]
+        ref_mask = vessel_mask(images[0])
+        est_mask = vessel_mask(images[1], float(images[0].max()))
         out["cldice"] = cldice(est_mask, ref_mask) if ref_mask.any() else None
     return out
 
 
 def truth_metrics(case: CaseRegistration, runs: dict[str, DSARun], truth: Truth) -> dict[str, dict]:
     """``{view: {stage: metrics}}`` against the phantom truth (see :func:`evaluate_pose`)."""
-    out = {}
-    for key, view in case.views.items():
-        true_pose = torch.as_tensor(truth.poses[key], dtype=torch.float64)
-        run = runs[key]
-        out[key] = {
-            stage: evaluate_pose(
-                pose, true_pose, run.detector, run.angles.sod_mm, truth.carotid_points_mm,
-                drr=case.drr, vessel_channel=VESSEL_CHANNEL, mask_detector=view.prepared.tto_detector,
-            )
+    return {
+        key: {
+            stage: evaluate_pose(pose, truth.poses[key], runs[key].detector, runs[key].angles.sod_mm, truth.carotid_points_mm,
+                                 renderer=case.renderer, mask_detector=view.prepared.tto_detector)
             for stage, pose in view.stage_poses.items()
         }
-    return out
+        for key, view in case.views.items()
+    }

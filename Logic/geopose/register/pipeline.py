@@ -1,199 +1,238 @@
-"""The whole GeoPose registration of one case: calibration, calibrated Init,
-gated refinement and test-time optimisation for a PA + lateral DSA pair.
+"""The GeoPose registration of one case, stage by stage: ``register_case``.
 
-``register_case`` is the keyword API used by the CLI, the demo and Slicer; each
-stage it calls is usable on its own (``calibration``, ``refine``, ``tto``).
+Read top to bottom, :func:`register_case` is the whole method (paper section 2.3):
+
+1. ``prepare_case``: CTA masks and render volume, each DSA run's MAP, cranium mask and
+   preprocessed images (``case.py``);
+2. ``calibrate``: one DRR of the native CTA at the PA isopose and one Init pass give the
+   canonical -> native frame transfer (``calibration.py``);
+3. ``calibrated_init``: Init on each view's MAP, moved into the native frame;
+4. ``greedy_refine``: Refine proposals accepted while the mNCC improves (``refine.py``);
+5. ``test_time_optimise``: the GeoReg objective through the differentiable renderer
+   (``tto.py``; needs PyTorch, skipped with a note without it);
+6. ``score``: final mNCC, silhouette Dice and the quality flag per view (``quality.py``).
+
+Both engines run the same stages: ``backend="torch"`` renders with the torch kernel and
+runs the torch networks, ``"onnxruntime"`` renders with the numpy kernel and runs the
+shipped ONNX graphs; only the kernel and the network runtime differ. Poses between
+stages are float64 numpy ``(4, 4)`` camera-to-world in the centred native CTA frame (mm).
+The CLI, the demo, the benchmark and the Slicer module all call these functions.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import Mapping
+from contextlib import contextmanager
+from typing import Iterator, Mapping
 
 import numpy as np
-import torch
 
 from ..dsa import DSARun, PreparedDSA
-from ..geometry import Detector, RigidTransform, rotation_angle_rad
-from ..metrics import mncc
-from ..nets import InitPredictor, RefinePredictor
-from ..render import DRR
+from ..errors import InputError
+from ..geometry.poses import invert, rotation_angle_rad
+from ..metrics.similarity import mncc
+from ..nets.predictors import ModelSet, load_models, resolve_torch_device
+from ..options import RegistrationOptions
+from ..render.renderer import Renderer, TorchRenderer, make_renderer
 from ..volume import Volume
 from .calibration import calibrate, calibrated_init
-from .case import (
-    CRANIUM_CHANNEL, LABEL_GROUPS, TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, case_labels, check_view_keys, prepare_views,
-)
-from .case import silhouette_dice as mask_dice
+from .case import TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, PreparedCase, prepare_case, silhouette_dice
 from .progress import CancelCheck, Monitor, ProgressCallback
-from .quality import assess
+from .quality import Quality, assess
 from .refine import greedy_refine
-from .results import CaseRegistration, RegistrationOptions, ViewOutcome
-from .tto import TTOView, test_time_optimise
+from .results import CaseRegistration, InitEstimate, RefineTrace, ViewOutcome
+from .tto import TTOResult, TTOSchedule, TTOView, test_time_optimise
 
-__all__ = ["PreparedCase", "prepare_case", "register_case", "final_mncc", "resolve_device", "synchronize"]
+__all__ = [
+    "Engine", "NO_TORCH_TTO_NOTE", "resolve_engine", "register_case", "score_view", "torch_available", "torch_renderer_for",
+    "tto_views",
+]
 
-
-def resolve_device(device: str) -> torch.device:
-    """``auto`` takes CUDA when present; ``cuda`` without a GPU is a clear error."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError("--device cuda was asked for but no CUDA device is available: use --device cpu or auto")
-    if device not in ("cpu",) and not device.startswith("cuda"):
-        raise ValueError(f"device must be auto, cpu or cuda, got {device!r}")
-    return torch.device(device)
+#: Said (progress, record, Slicer table) when the test-time optimisation cannot run.
+NO_TORCH_TTO_NOTE = ("PyTorch is not installed: calibration, Init and Refine ran on onnxruntime; the test-time "
+                     "optimisation needs PyTorch and was skipped")
 
 
-def _tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
-    return torch.as_tensor(np.ascontiguousarray(image), dtype=torch.float32, device=device)[None, None]
+def torch_available() -> bool:
+    """Whether PyTorch imports here (a broken install counts as missing)."""
+    try:
+        import torch  # noqa: F401
+    except (ImportError, OSError):
+        return False
+    return True
 
 
-def silhouette_dice(drr: DRR, pose: torch.Tensor, prepared: PreparedDSA) -> float:
-    """Hard Dice between the projected CTA cranium and the DSA cranium mask (TTO geometry)."""
-    with torch.no_grad():
-        silhouette = drr(pose, detector=prepared.tto_detector, channels=(CRANIUM_CHANNEL,))[0, 0]
-    return mask_dice(silhouette.cpu().numpy(), prepared.tto_mask)
+class Engine:
+    """What a registration runs on: the renderer, the networks, and (when PyTorch is there) the
+    differentiable renderer of the test-time optimisation. Build with :func:`resolve_engine`."""
+
+    def __init__(self, renderer: Renderer, models: ModelSet, tto_renderer: TorchRenderer | None) -> None:
+        self.renderer = renderer
+        self.models = models
+        self.tto_renderer = tto_renderer
+
+    @property
+    def device(self) -> str:
+        return str(getattr(self.renderer, "device", "cpu"))
+
+    def synchronize(self) -> None:
+        """Wait for queued CUDA work, so a timing boundary measures it (no-op on the CPU)."""
+        if self.device.startswith("cuda"):
+            import torch
+
+            torch.cuda.synchronize(self.device)
+
+    def describe(self, options: RegistrationOptions, case: PreparedCase) -> dict:
+        """The engine as the result record states it."""
+        return {
+            "backend": self.models.runtime,
+            "renderer": self.renderer.engine,
+            "device": self.device,
+            "tto": "torch" if self.tto_renderer is not None else "skipped (PyTorch not installed)",
+            "render_px": options.render_px or self.models.render_px,
+            "tto_px": case.views["pa"].tto_detector.shape,
+            "model_clip_percentiles": list(options.model_clip_percentiles or self.models.clip_percentiles),
+            "models": self.models.files,
+            "cta_levels_mm": {"x".join(map(str, f)): [round(s, 3) for s in lvl.spacing_mm]
+                              for f, lvl in case.volume.levels.items()},
+        }
 
 
-@dataclass
-class PreparedCase:
-    """A case ready for the stages: the combined CTA labels, the renderer on the
-    chosen device, and each view's preprocessed DSA (``{"pa", "lat"}``)."""
-
-    labels: Volume
-    labels_source: dict
-    drr: DRR
-    views: dict[str, PreparedDSA]
-    device: torch.device
-
-    def model_target(self, key: str) -> torch.Tensor:
-        """View ``key``'s model-geometry MAP ``(1, 1, 256, 256)`` on the case device."""
-        return _tensor(self.views[key].model_image, self.device)
-
-    def tto_target(self, key: str) -> torch.Tensor:
-        """View ``key``'s MAP in its TTO geometry ``(1, 1, h, w)`` on the case device."""
-        return _tensor(self.views[key].tto_image, self.device)
-
-    def tto_view(self, key: str, pose: torch.Tensor) -> TTOView:
-        """View ``key`` set up for :func:`test_time_optimise`, starting from ``pose`` ``(1, 4, 4)``."""
-        p = self.views[key]
-        return TTOView(key, self.tto_target(key), _tensor(p.tto_mask, self.device), p.tto_detector, pose.float())
+def resolve_engine(options: RegistrationOptions, models: str | ModelSet | None = None) -> tuple[str, str, ModelSet]:
+    """``(backend, device, models)`` for ``options``: ``auto`` takes torch when it is installed,
+    CUDA when present; the networks come from ``models`` (a folder, default the shipped models,
+    or an already loaded :class:`ModelSet`, which must match the backend)."""
+    has_torch = torch_available()
+    backend = options.backend if options.backend != "auto" else ("torch" if has_torch else "onnxruntime")
+    if backend == "torch" and not has_torch:
+        raise InputError("backend 'torch' was asked for but PyTorch is not installed: install PyTorch, or use "
+                         "backend 'onnxruntime' (Init + Refine without the test-time optimisation)")
+    if backend == "torch":
+        device = str(resolve_torch_device(options.device))
+    else:
+        device = "cuda" if options.device.startswith("cuda") else "cpu"
+    if isinstance(models, ModelSet):
+        if models.runtime != backend:
+            raise InputError(f"the loaded models run on {models.runtime} but backend {backend!r} was asked for; "
+                             "load them with the same runtime")
+        return backend, device, models
+    return backend, device, load_models(models, runtime=backend, device=device)
 
 
-def prepare_case(
-    cta: Volume,
-    dsa: Mapping[str, DSARun],
-    *,
-    cranium_mask: Volume | None = None,
-    segmentation: Volume | None = None,
-    dsa_masks: Mapping[str, np.ndarray] | None = None,
-    options: RegistrationOptions | None = None,
-    monitor: Monitor | None = None,
-) -> PreparedCase:
-    """CTA labels + renderer and the preprocessed PA / lateral runs (checked against their roles)."""
-    options = options or RegistrationOptions()
-    monitor = monitor or Monitor()
-    check_view_keys(dsa)
-    device = resolve_device(options.device)
-    monitor.step("prepare", 0.0, "CTA masks")
-    labels, labels_source = case_labels(cta, cranium_mask, segmentation)
-    drr = DRR.from_volume(cta, Detector.model(), labels=labels, label_groups=LABEL_GROUPS, device=device)
-    tto_px = options.tto_px or (TTO_PX_CUDA if device.type == "cuda" else TTO_PX_CPU)
-    prepared = prepare_views(dsa, tto_px=tto_px, dsa_masks=dsa_masks, monitor=monitor,
-                             model_clip_percentiles=options.model_clip_percentiles)
-    return PreparedCase(labels, labels_source, drr, prepared, device)
+@contextmanager
+def _timed(times: dict[str, float], name: str, engine: Engine) -> Iterator[None]:
+    t0 = time.perf_counter()
+    yield
+    engine.synchronize()
+    times[name] = time.perf_counter() - t0
+
+
+def tto_views(views: Mapping[str, PreparedDSA], poses: Mapping[str, np.ndarray]) -> list[TTOView]:
+    """Both preprocessed views set up for :func:`test_time_optimise`, starting from ``poses``."""
+    return [TTOView(k, views[k].tto_image, views[k].tto_mask, views[k].tto_detector, poses[k]) for k in VIEW_KEYS]
+
+
+def torch_renderer_for(renderer: Renderer) -> TorchRenderer | None:
+    """The differentiable renderer of ``renderer``'s volume (itself when it is one; on the CPU,
+    sharing the volume's arrays, when it is the numpy one); None without PyTorch."""
+    if isinstance(renderer, TorchRenderer):
+        return renderer
+    return TorchRenderer(renderer.volume, "cpu") if torch_available() else None
+
+
+def score_view(renderer: Renderer, pose: np.ndarray, prepared: PreparedDSA) -> tuple[float, float]:
+    """(mNCC of the DRR at ``pose`` against the TTO target, hard Dice of the projected cranium
+    and the DSA cranium mask), both in the TTO geometry (acquisition SDD)."""
+    image = renderer.render(pose, prepared.tto_detector, ("total", "cranium"))
+    return mncc(prepared.tto_image, image[0]), silhouette_dice(image[1], prepared.tto_mask)
+
+
+def _stage_agreement(learned: np.ndarray, final: np.ndarray) -> tuple[float, float]:
+    """(deg, mm) the final pose moved from the learned estimate."""
+    moved = invert(learned) @ final
+    return float(np.degrees(rotation_angle_rad(moved[:3, :3]))), float(np.linalg.norm(final[:3, 3] - learned[:3, 3]))
 
 
 def register_case(
     cta: Volume,
     dsa: Mapping[str, DSARun],
     *,
-    init: InitPredictor,
-    refine: RefinePredictor,
+    models: str | ModelSet | None = None,
+    options: RegistrationOptions | None = None,
     cranium_mask: Volume | None = None,
     segmentation: Volume | None = None,
     dsa_masks: Mapping[str, np.ndarray] | None = None,
-    options: RegistrationOptions | None = None,
     progress: ProgressCallback | None = None,
     cancel: CancelCheck | None = None,
 ) -> CaseRegistration:
     """Register a native CTA (HU) to ``dsa = {"pa": run, "lat": run}``.
 
-    ``init`` / ``refine`` are predictors (``geopose.nets.make_predictors``) on the
-    same device as ``options.device``. Returns every intermediate pose and trace.
+    ``models``: a models folder (default: the shipped models) or a :class:`ModelSet` from
+    :func:`geopose.nets.load_models` (reused across cases). ``options``: every setting
+    (:class:`geopose.options.RegistrationOptions`). Masks are optional label volumes on the
+    CTA grid (computed from the CTA when absent). ``progress(stage, fraction, message)`` is
+    called throughout; ``cancel()`` returning True stops at the next step
+    (:class:`~geopose.register.progress.RegistrationCancelled`). Returns every pose and trace.
     """
     options = options or RegistrationOptions()
     monitor = Monitor(progress, cancel)
     times: dict[str, float] = {}
+    notes: list[str] = []
+    t_start = time.perf_counter()
 
-    t0 = time.perf_counter()
+    # 1. The case: CTA render volume and masks, preprocessed DSA views.
+    backend, device, model_set = resolve_engine(options, models)
+    tto_px = options.tto_px or (TTO_PX_CUDA if device.startswith("cuda") else TTO_PX_CPU)
+    clip = options.model_clip_percentiles or model_set.clip_percentiles
     case = prepare_case(
-        cta, dsa, cranium_mask=cranium_mask, segmentation=segmentation, dsa_masks=dsa_masks, options=options, monitor=monitor
+        cta, dsa, cranium_mask=cranium_mask, segmentation=segmentation, dsa_masks=dsa_masks, tto_px=tto_px,
+        model_clip_percentiles=clip, work_spacing_mm=options.work_spacing_mm, monitor=monitor,
     )
-    device, drr, prepared = case.device, case.drr, case.views
-    synchronize(device)
-    times["prepare"] = time.perf_counter() - t0
+    renderer = make_renderer(case.volume, "torch" if backend == "torch" else "numpy", device)
+    tto_renderer = torch_renderer_for(renderer)
+    engine = Engine(renderer, model_set, tto_renderer)
+    render_px = options.render_px or model_set.render_px
+    times["prepare"] = time.perf_counter() - t_start
 
-    t0 = time.perf_counter()
-    monitor.step("calibration", 0.0, "rendering the PA calibration DRR")
-    calibration = calibrate(drr, init)
-    synchronize(device)
-    times["calibration"] = time.perf_counter() - t0
+    # 2. Projection-space calibration (once per CTA).
+    with _timed(times, "calibration", engine):
+        monitor.step("calibration", 0.0, "rendering the PA calibration DRR")
+        calibration = calibrate(renderer, model_set.init, render_px)
 
-    t0 = time.perf_counter()
-    inits = {}
-    for i, key in enumerate(VIEW_KEYS):
-        monitor.step("init", i / 2, f"Init {key.upper()}")
-        inits[key] = calibrated_init(case.model_target(key), key == "lat", init, calibration)
-    synchronize(device)
-    times["init"] = time.perf_counter() - t0
+    # 3. Calibrated Init per view.
+    inits: dict[str, InitEstimate] = {}
+    with _timed(times, "init", engine):
+        for i, key in enumerate(VIEW_KEYS):
+            monitor.step("init", i / 2, f"Init {key.upper()}")
+            inits[key] = calibrated_init(case.model_target(key), key == "lat", model_set.init, calibration)
 
-    t0 = time.perf_counter()
-    refined = {
-        key: greedy_refine(
-            drr, case.model_target(key), inits[key].pose_native.float(), inits[key].view, refine, options.refine_steps,
-            monitor=monitor,
-        )
-        for key in VIEW_KEYS
-    }
-    synchronize(device)
-    times["refine"] = time.perf_counter() - t0
+    # 4. Similarity-gated greedy refinement per view.
+    refined: dict[str, RefineTrace] = {}
+    with _timed(times, "refine", engine):
+        for key in VIEW_KEYS:
+            refined[key] = greedy_refine(renderer, case.model_target(key), inits[key].pose_native, inits[key].view,
+                                         model_set.refine, render_px, options.refine_steps, monitor)
 
-    t0 = time.perf_counter()
-    tto_result = None
+    # 5. Test-time optimisation of both views (needs PyTorch).
     finals = {key: refined[key].pose for key in VIEW_KEYS}
-    if options.iterations > 0:
-        views = [case.tto_view(key, refined[key].pose) for key in VIEW_KEYS]
-        tto_result = test_time_optimise(
-            drr, views, options.iterations, cranium_channel=CRANIUM_CHANNEL, biplanar=options.biplanar, monitor=monitor
-        )
-        finals = dict(tto_result.poses)
-    synchronize(device)
-    times["tto"] = time.perf_counter() - t0
+    tto_result: TTOResult | None = None
+    with _timed(times, "tto", engine):
+        if options.iterations > 0 and tto_renderer is None:
+            notes.append(NO_TORCH_TTO_NOTE)
+            monitor.step("tto", 1.0, NO_TORCH_TTO_NOTE)
+        elif options.iterations > 0:
+            tto_result = test_time_optimise(tto_renderer, tto_views(case.views, finals), TTOSchedule(options.iterations),
+                                            biplanar=options.biplanar, monitor=monitor)
+            finals = dict(tto_result.poses)
 
-    outcomes = {}
-    for key in VIEW_KEYS:
-        p = prepared[key]
-        score = final_mncc(drr, finals[key], p, device)
-        dice = silhouette_dice(drr, finals[key], p)
-        moved = RigidTransform(refined[key].pose.double()).inverse().matrix @ finals[key].double()
-        rot = float(torch.rad2deg(rotation_angle_rad(moved[:, :3, :3]))[0])
-        trans = float((finals[key][0, :3, 3].double() - refined[key].pose[0, :3, 3].double()).norm())
-        outcomes[key] = ViewOutcome(key, p, inits[key], refined[key], finals[key], score, dice, assess(score, dice, rot, trans))
-    times["total"] = sum(times.values())
-    monitor.step("done", 1.0, "registration finished")
-    return CaseRegistration(cta, case.labels, case.labels_source, calibration, outcomes, tto_result, times, str(device), options, drr)
-
-
-def final_mncc(drr: DRR, pose: torch.Tensor, prepared: PreparedDSA, device: torch.device) -> float:
-    """mNCC between the DSA MAP and the DRR at ``pose`` in the TTO geometry."""
-    with torch.no_grad():
-        image = drr(pose.float(), detector=prepared.tto_detector, channels=(0,))
-        return float(mncc(_tensor(prepared.tto_image, device).double(), image.double()))
-
-
-def synchronize(device: torch.device) -> None:
-    """Wait for queued CUDA work, so a timing boundary measures it (no-op on the CPU)."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+    # 6. Scores and quality flags.
+    outcomes: dict[str, ViewOutcome] = {}
+    with _timed(times, "score", engine):
+        for key in VIEW_KEYS:
+            score, dice = score_view(renderer, finals[key], case.views[key])
+            quality: Quality = assess(score, dice, *_stage_agreement(refined[key].pose, finals[key]))
+            outcomes[key] = ViewOutcome(key, case.views[key], inits[key], refined[key], finals[key], score, dice, quality)
+    times["total"] = time.perf_counter() - t_start
+    monitor.step("done", 1.0, "registration finished" + (" (" + notes[0] + ")" if notes else ""))
+    return CaseRegistration(cta, case.labels_source, calibration, outcomes, tto_result, times, options,
+                            engine.describe(options, case), renderer, notes)

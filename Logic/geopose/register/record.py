@@ -17,25 +17,19 @@ from .. import contract as C
 from ..dsa import DSARun
 from ..geometry.detector import carm_angles_from_params
 from ..geometry.frames import pose_to_patient
-from ..geometry.numpy_poses import params_from_pose
+from ..geometry.poses import params_from_pose
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
-#: 2: ``view_logits`` are mirror-averaged (``view_logits_doc`` says so); 1: single-image logits.
-SCHEMA_VERSION = 2
+#: 3: ``engine`` (backend, renderer, device, render sizes, CTA levels) and ``notes``; options of
+#: ``geopose.options``. 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
+SCHEMA_VERSION = 3
 
-__all__ = ["SCHEMA", "SCHEMA_VERSION", "as_numpy", "build_record", "write_record", "library_versions"]
-
-
-def as_numpy(x: Any) -> np.ndarray:
-    """A numpy array (float64 for floats) from a numpy array or a torch tensor on any device."""
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=np.float64) if np.asarray(x).dtype.kind == "f" else np.asarray(x)
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "write_record", "library_versions"]
 
 
-def _m(t: Any) -> list:
-    return as_numpy(t).reshape(4, 4).tolist()
+def _m(pose: np.ndarray) -> list:
+    return np.asarray(pose, dtype=np.float64).reshape(4, 4).tolist()
 
 
 def library_versions() -> dict[str, str]:
@@ -61,7 +55,7 @@ def library_versions() -> dict[str, str]:
 
 
 def _pose_entry(case: CaseRegistration, pose: Any) -> dict:
-    centred = as_numpy(pose).reshape(4, 4)
+    centred = np.asarray(pose, dtype=np.float64).reshape(4, 4)
     return {
         "pose_centred": centred.tolist(),
         "pose_ras": pose_to_patient(centred, case.cta.ijk_to_ras, case.cta.shape_ijk, "RAS").tolist(),
@@ -69,13 +63,13 @@ def _pose_entry(case: CaseRegistration, pose: Any) -> dict:
 
 
 def _view_entry(case: CaseRegistration, v: ViewOutcome, run: DSARun) -> dict:
-    r, t = params_from_pose(as_numpy(v.final_pose).reshape(4, 4))
+    r, t = params_from_pose(v.final_pose)
     angles = carm_angles_from_params(r, t, sid_mm=run.detector.sdd_mm)
     entry = {
         "role": v.prepared.view_role,
         "view_label": v.init.view,
         "view_name": C.VIEW_NAMES[v.init.view],
-        "view_logits": as_numpy(v.init.logits).reshape(-1).tolist(),
+        "view_logits": np.asarray(v.init.logits, dtype=np.float64).reshape(-1).tolist(),
         "view_logits_doc": "(LAT-, PA, LAT+) logits of the MAP averaged with its left-right mirror's (nets.mirror_averaged_logits)",
         **_pose_entry(case, v.final_pose),
         "euler_zyx_rad": r.tolist(),
@@ -115,7 +109,6 @@ def build_record(
     runs: dict[str, DSARun],
     *,
     inputs: dict[str, Any] | None = None,
-    models: dict[str, Any] | None = None,
     truth_metrics: dict[str, dict] | None = None,
 ) -> dict:
     """JSON-ready record of a :class:`CaseRegistration` (see the module doc)."""
@@ -128,9 +121,10 @@ def build_record(
         "voxel-grid centre, mm); pose_ras: camera-to-RAS 4x4 in the CTA's patient frame; camera: source at origin, "
         "detector at z = SDD, AP reorientation applied (CONVENTIONS 1-2)",
         "inputs": inputs or {},
-        "models": models or {},
-        "environment": {**library_versions(), "device": case.device},
-        "options": asdict(case.options),
+        "environment": library_versions(),
+        "options": case.options.as_dict(),
+        "engine": case.engine,
+        "notes": list(case.notes),
         "labels_source": case.labels_source,
         "cta": {
             "shape_ijk": list(case.cta.shape_ijk),

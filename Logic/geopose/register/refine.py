@@ -1,50 +1,54 @@
 """Similarity-gated greedy refinement with GeoPose-Refine (paper section 2.3.2).
 
-Each proposal is ``T_new = inverse(D) @ T_current``; it is accepted only if the
-multiscale NCC between target and render strictly increases, and the loop stops
-at the first rejection or after ``max_proposals``.
+Each proposal is ``T_new = inverse(D) @ T_current`` with ``D`` the network's residual
+for (target, DRR at ``T_current``); it is accepted only if the multiscale NCC between
+target and render strictly increases, and the loop stops at the first rejection or
+after ``max_proposals``. Scores in float64 (a float32 mNCC of flat patches is off by
+about 0.005, enough to flip a decision). numpy poses; any renderer and Refine predictor.
 """
 
 from __future__ import annotations
 
-from typing import Callable
-
-import torch
-from torch import Tensor
+import numpy as np
 
 from .. import contract as C
-from ..geometry import RigidTransform
-from ..metrics import mncc
-from ..nets import RefinePredictor
-from ..render import DRR
+from ..geometry.poses import invert
+from ..metrics.similarity import mncc
+from ..nets.predictors import RefinePredictor
+from ..render.renderer import Renderer
 from .calibration import render_model_view
-from .gating import gated_refinement
 from .progress import Monitor
-from .results import RefineTrace
+from .results import Proposal, RefineTrace
 
 __all__ = ["greedy_refine"]
 
 
-@torch.no_grad()
 def greedy_refine(
-    drr: DRR,
-    target: Tensor,
-    pose: Tensor,
+    renderer: Renderer,
+    target: np.ndarray,
+    pose: np.ndarray,
     view: int,
     refine: RefinePredictor,
+    render_px: int,
     max_proposals: int = C.GREEDY_MAX_PROPOSALS,
-    render: Callable[[DRR, Tensor], Tensor] = render_model_view,
     monitor: Monitor | None = None,
 ) -> RefineTrace:
-    """Refine ``pose`` ``(1, 4, 4)`` against a model-geometry ``target`` ``(1, 1, 256, 256)``."""
-
-    def propose(current: Tensor, image: Tensor) -> Tensor:
-        residual = refine.predict_residual(target, image, view).to(current.dtype)
-        return RigidTransform(residual).inverse().matrix @ current
-
-    # The gate compares scores that differ in the third decimal: float64 moments (float32
-    # patch variances are off by about 0.005 in flat regions).
-    return gated_refinement(
-        pose, lambda p: render(drr, p), lambda image: float(mncc(target.double(), image.double())), propose,
-        max_proposals, monitor,
-    )
+    """Refine ``pose`` ``(4, 4)`` against a model-geometry ``target`` ``(1, 1, 256, 256)``."""
+    monitor = monitor or Monitor()
+    current = np.asarray(pose, dtype=np.float64)
+    image = render_model_view(renderer, current, render_px)
+    score = mncc(target[0, 0], image[0, 0])
+    trace = RefineTrace(current, score, current, score)
+    for k in range(max_proposals):
+        monitor.step("refine", k / max_proposals, f"proposal {k + 1}/{max_proposals}")
+        candidate = invert(refine.predict_residual(target, image, view)[0]) @ current
+        cand_image = render_model_view(renderer, candidate, render_px)
+        cand_score = mncc(target[0, 0], cand_image[0, 0])
+        accepted = cand_score > score
+        trace.proposals.append(Proposal(candidate, cand_score, accepted))
+        if not accepted:
+            break
+        current, image, score = candidate, cand_image, cand_score
+    trace.pose, trace.mncc = current, score
+    monitor.step("refine", 1.0, f"{trace.accepted} of {len(trace.proposals)} proposals accepted")
+    return trace

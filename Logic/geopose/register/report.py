@@ -6,12 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from .. import viz
 from ..dsa.preprocess import resample_to_detector
-from ..geometry import Detector, project_points
-from .case import VESSEL_CHANNEL
+from ..geometry.detector import Detector
+from ..geometry.poses import project_points
+from .evaluate import vessel_mask
 from .results import CaseRegistration
 
 __all__ = ["write_overlays"]
@@ -31,14 +31,13 @@ def overlay_detector(detector: Detector, px: int = OVERLAY_PX) -> Detector:
 
 def _panel(case: CaseRegistration, key: str, stage: str, map_rgb: np.ndarray, det: Detector, carotid_mm: np.ndarray | None) -> np.ndarray:
     pose = case.views[key].stage_poses[stage]
-    with torch.no_grad():
-        vessels = case.drr(pose.float(), detector=det, channels=(VESSEL_CHANNEL,))[0, 0].cpu().numpy()
+    vessels = case.renderer.render(pose, det, ("vessels",))[0]
     rgb = map_rgb
     if vessels.max() > 0:
-        rgb = viz.overlay_mask(rgb, vessels > 0.05 * vessels.max(), VESSEL_COLOUR, alpha=0.55)
+        rgb = viz.overlay_mask(rgb, vessel_mask(vessels), VESSEL_COLOUR, alpha=0.55)
     if carotid_mm is not None and len(carotid_mm):
-        rc, _ = project_points(pose.detach().cpu().double(), det, torch.as_tensor(carotid_mm, dtype=torch.float64))
-        rgb = viz.draw_points(rgb, rc[0].numpy()[::3], CENTRELINE_COLOUR, radius=0.8)
+        rc, _ = project_points(pose, det, carotid_mm)
+        rgb = viz.draw_points(rgb, rc[::3], CENTRELINE_COLOUR, radius=0.8)
     return viz.label_panel(rgb, f"{key.upper()}: {STAGE_TITLES[stage]}")
 
 

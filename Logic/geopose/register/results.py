@@ -1,85 +1,67 @@
-"""The in-memory results of a registration, whichever path produced them (no PyTorch).
+"""The in-memory results of a registration (no PyTorch).
 
-The torch pipeline fills them with tensors, the numpy pipeline with numpy arrays:
-poses are camera-to-world ``(1, 4, 4)`` (or ``(4, 4)``) in the centred native CTA
-frame (mm). ``record.py`` turns a :class:`CaseRegistration` into JSON.
+Every pose is a camera-to-world ``(4, 4)`` float64 numpy array in the centred native
+CTA frame (mm), whichever engine computed it. ``record.py`` turns a
+:class:`CaseRegistration` into JSON.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Union
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import contract as C
 from ..dsa import PreparedDSA
-from ..dsa import check_clip_percentiles
+from ..options import RegistrationOptions
 from ..volume import Volume
 from .quality import Quality
 
 if TYPE_CHECKING:
-    from torch import Tensor
-
+    from ..render.renderer import Renderer
     from .tto import TTOResult
 
-__all__ = ["Pose", "RegistrationOptions", "Calibration", "InitEstimate", "Proposal", "RefineTrace", "ViewOutcome", "CaseRegistration"]
-
-#: A pose or batch of poses: a torch tensor (torch pipeline) or a numpy array (numpy pipeline).
-Pose = Union["Tensor", np.ndarray]
-
-
-@dataclass
-class RegistrationOptions:
-    """Knobs of a registration (defaults follow the paper)."""
-
-    refine_steps: int = C.GREEDY_MAX_PROPOSALS
-    iterations: int = C.TTO_ITERATIONS
-    tto_px: int | None = None  # None: the model resolution on a GPU, half of it on a CPU
-    biplanar: bool = False
-    device: str = "auto"
-    #: Percentiles the networks' MAP is clipped to (the TTO target keeps CONVENTIONS 5).
-    model_clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
-
-    def __post_init__(self) -> None:
-        self.model_clip_percentiles = check_clip_percentiles(self.model_clip_percentiles)
+__all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "ViewOutcome", "CaseRegistration"]
 
 
 @dataclass
 class Calibration:
-    """``frame_transfer``: canonical -> native (centred frames, mm); ``image`` the PA calibration DRR."""
+    """Projection-space calibration: ``frame_transfer`` maps canonical to native poses (centred
+    frames, mm); ``image`` is the PA calibration DRR ``(1, 1, 256, 256)``."""
 
-    calibration_pose: Pose
-    predicted_canonical: Pose
-    frame_transfer: Pose
-    image: Any
+    calibration_pose: np.ndarray
+    predicted_canonical: np.ndarray
+    frame_transfer: np.ndarray
+    image: np.ndarray
 
-    def to_native(self, pose_canonical: Pose) -> Pose:
+    def to_native(self, pose_canonical: np.ndarray) -> np.ndarray:
         return self.frame_transfer @ pose_canonical
 
 
 @dataclass
 class InitEstimate:
-    """Calibrated Init output for one DSA view."""
+    """Calibrated Init output for one DSA view: native and canonical pose, view label, logits ``(3,)``."""
 
-    pose_native: Pose
-    pose_canonical: Pose
+    pose_native: np.ndarray
+    pose_canonical: np.ndarray
     view: int
-    logits: Any
+    logits: np.ndarray
 
 
 @dataclass
 class Proposal:
-    pose: Pose
+    pose: np.ndarray
     mncc: float
     accepted: bool
 
 
 @dataclass
 class RefineTrace:
-    start_pose: Pose
+    """Greedy refinement of one view: start and final pose with their mNCC, every proposal."""
+
+    start_pose: np.ndarray
     start_mncc: float
-    pose: Pose
+    pose: np.ndarray
     mncc: float
     proposals: list[Proposal] = field(default_factory=list)
 
@@ -96,28 +78,30 @@ class ViewOutcome:
     prepared: PreparedDSA
     init: InitEstimate
     refine: RefineTrace
-    final_pose: Pose
+    final_pose: np.ndarray
     final_mncc: float
     silhouette_dice: float
     quality: Quality
 
     @property
-    def stage_poses(self) -> dict[str, Pose]:
+    def stage_poses(self) -> dict[str, np.ndarray]:
         return {"init": self.init.pose_native, "refine": self.refine.pose, "final": self.final_pose}
 
 
 @dataclass
 class CaseRegistration:
-    """One registered case. ``drr`` is the renderer that was used (torch ``DRR`` or
-    ``NumpyDRR``); ``tto`` is None when no test-time optimisation ran."""
+    """One registered case. ``renderer`` is the renderer that was used (it renders the CTA's
+    channels for overlays and metrics); ``tto`` is None when no test-time optimisation ran;
+    ``engine`` says which backend, device and render sizes were used; ``notes`` what the
+    user should know (e.g. a skipped stage)."""
 
     cta: Volume
-    labels: Volume
     labels_source: dict
     calibration: Calibration
     views: dict[str, ViewOutcome]
     tto: "TTOResult | None"
     runtimes_s: dict[str, float]
-    device: str
     options: RegistrationOptions
-    drr: Any = field(repr=False)
+    engine: dict
+    renderer: "Renderer" = field(repr=False)
+    notes: list[str] = field(default_factory=list)

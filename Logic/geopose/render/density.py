@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Mapping, Sequence, TypeVar
 
 import numpy as np
@@ -11,26 +13,61 @@ from .. import contract as C
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["hu_to_density", "label_channels"]
+__all__ = ["DensityScale", "hu_to_density", "label_channels"]
 
 Array = TypeVar("Array", np.ndarray, "Tensor")
 
 
+#: Slices per block while scanning a volume for its density scale.
+SCAN_SLICES = 32
+
+
+@dataclass(frozen=True)
+class DensityScale:
+    """CONVENTIONS 3 for one volume: HU <= HU_AIR_MAX become ``floor_hu`` (its smallest soft-tissue
+    value), HU > HU_BONE_MIN are multiplied by ``bone_factor``, then ``(hu' - lo_hu) / span_hu``."""
+
+    floor_hu: float
+    lo_hu: float
+    span_hu: float
+    bone_factor: float = C.BONE_FACTOR
+
+    @classmethod
+    def of(cls, hu: np.ndarray, bone_factor: float = C.BONE_FACTOR) -> "DensityScale":
+        """The scale of a ``[k, j, i]`` HU volume, scanned block by block (no full-size temporaries)."""
+        soft_min = tissue_min = math.inf
+        top = -math.inf
+        for k0 in range(0, hu.shape[0], SCAN_SLICES):
+            x = np.asarray(hu[k0 : k0 + SCAN_SLICES], dtype=np.float32)
+            tissue = x[x > C.HU_AIR_MAX]
+            if tissue.size:
+                tissue_min = min(tissue_min, float(tissue.min()))
+                soft = tissue[tissue <= C.HU_BONE_MIN]
+                if soft.size:
+                    soft_min = min(soft_min, float(soft.min()))
+            top = max(top, float(x.max()))
+        floor = soft_min if math.isfinite(soft_min) else C.HU_AIR_MAX
+        lo = min(floor, tissue_min * bone_factor if tissue_min > C.HU_BONE_MIN else tissue_min)
+        hi = max(floor, top * bone_factor if top > C.HU_BONE_MIN else top)
+        return cls(floor, lo, max(hi - lo, 1e-12), bone_factor)
+
+    def apply(self, hu: np.ndarray) -> np.ndarray:
+        """Density (float32, [0, 1] over the volume the scale came from) of HU values."""
+        x = np.asarray(hu, dtype=np.float32)
+        x = np.where(x <= C.HU_AIR_MAX, np.float32(self.floor_hu), x)
+        if self.bone_factor != 1.0:
+            x = np.where(x > C.HU_BONE_MIN, x * np.float32(self.bone_factor), x)
+        return (x - np.float32(self.lo_hu)) / np.float32(self.span_hu)
+
+
 def hu_to_density(hu: Array, bone_factor: float = C.BONE_FACTOR) -> Array:
-    """Density in [0, 1] (float32) from HU: air (<= HU_AIR_MAX) set to the soft-tissue minimum,
-    bone (> HU_BONE_MIN) scaled by ``bone_factor``, then min-max over the volume.
+    """Density in [0, 1] (float32) from HU (:class:`DensityScale` of the whole volume).
     Answers in the kind it is given (numpy array or torch tensor)."""
     if not isinstance(hu, np.ndarray):
         import torch
 
         return torch.as_tensor(hu_to_density(hu.detach().cpu().numpy(), bone_factor), device=hu.device)
-    x = hu.astype(np.float32)
-    soft = (x > C.HU_AIR_MAX) & (x <= C.HU_BONE_MIN)
-    floor = np.float32(x[soft].min() if soft.any() else C.HU_AIR_MAX)
-    x = np.where(x <= C.HU_AIR_MAX, floor, x)
-    x = np.where(x > C.HU_BONE_MIN, x * np.float32(bone_factor), x)
-    lo, hi = x.min(), x.max()
-    return ((x - lo) / max(float(hi - lo), 1e-12)).astype(np.float32)
+    return DensityScale.of(hu, bone_factor).apply(hu)
 
 
 def label_channels(

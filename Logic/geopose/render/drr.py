@@ -8,7 +8,13 @@ the pose (and the density); runs wherever torch runs.
 Trilinear sampling is done as one *2D* bilinear lookup into a slice atlas plus a
 linear blend along k: the atlas stacks slice k and slice k+1 as two channels of
 tile k, tiles separated by a zero row. Torch's 2D sampler is vectorised and is
-several times faster than its 3D one on CPU, with identical results.
+several times faster than its 3D one on CPU, with identical results. On a CPU it
+parallelises over the batch only, so each chunk of rays is split into one batch
+item per thread (the atlas expanded, not copied): every core works, forward and
+backward.
+
+This is the torch kernel of :mod:`geopose.render.renderer` and the renderer of the
+phantom simulator and of training.
 """
 
 from __future__ import annotations
@@ -21,7 +27,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from ..geometry.carm import Detector, source_and_detector_points
+from ..geometry.carm import ray_points_tensor
+from ..geometry.detector import Detector
 from ..geometry.rigid import RigidTransform, as_transform
 from ..volume import Volume
 from .density import hu_to_density, label_channels
@@ -94,7 +101,7 @@ class DRR(nn.Module):
         dev = self.density.device
         pose = pose.to(device=dev)
         w2i = self.world_to_ijk.to(pose.matrix.dtype)
-        src, pix = source_and_detector_points(pose, det)  # (B,3), (B,H,W,3) world mm
+        src, pix = ray_points_tensor(pose, det)  # (B,3), (B,H,W,3) world mm
         B, H, W, _ = pix.shape
         # Rays in continuous index space.
         s = src @ w2i[:3, :3].T + w2i[:3, 3]
@@ -152,8 +159,16 @@ class DRR(nn.Module):
         # Atlas row of (j, tile k0 + 1), normalised: (j + (k0 + 1)(J + 1)) * sy - 1.
         y_j = torch.addcmul(((start[:, 1] + (J + 1)) * sy - 1.0)[:, None], (span[:, 1] * sy)[:, None], frac)
         y = torch.add(y_j, k0, alpha=(J + 1) * sy)
-        grid = torch.stack((x, y), dim=-1)[None]  # (1, N, n, 2)
-        pair = F.grid_sample(self.atlas(channels), grid, mode="bilinear", padding_mode="zeros", align_corners=True)[0]
+        grid = torch.stack((x, y), dim=-1)  # (N, n, 2)
+        N, n = grid.shape[:2]
+        split = torch.get_num_threads() if grid.device.type == "cpu" and N >= 2 * torch.get_num_threads() else 1
+        pad = (-N) % split
+        if pad:  # padded rays sample outside the atlas (zeros) and are dropped below
+            grid = F.pad(grid, (0, 0, 0, 0, 0, pad), value=3.0)
+        atlas = self.atlas(channels)
+        pair = F.grid_sample(atlas.expand(split, -1, -1, -1), grid.view(split, (N + pad) // split, n, 2), mode="bilinear",
+                             padding_mode="zeros", align_corners=True)
+        pair = pair.permute(1, 0, 2, 3).reshape(2 * C_, N + pad, n)[:, :N]
         return torch.lerp(pair[:C_], pair[C_:], k - k0)
 
 

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from ..nets import normalize_minmax
+from ..images import normalize_minmax
 from . import recipe as R
 
 

@@ -16,7 +16,8 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from ..contract import MODEL_DETECTOR_PX
-from ..geometry.carm import Detector, project_points
+from ..geometry.carm import project_points_tensor
+from ..geometry.detector import Detector
 from ..geometry.rigid import RigidTransform
 from ..render import DRR
 from .population import CHANNELS, TrainingSubject
@@ -76,7 +77,7 @@ class Renderer:
     def project_fiducials(self, subject: Tensor, pose: Tensor) -> Tensor:
         """Pixels ``(B, N, 2)`` (row, col) of each subject's vessel fiducials on the image detector."""
         points = torch.stack([self.subjects[i].fiducials_mm for i in subject.tolist()]).to(pose.dtype)
-        return project_points(RigidTransform(pose), self.image_detector, points)[0]
+        return project_points_tensor(RigidTransform(pose), self.image_detector, points)[0]
 
 
 class OnTheFlySource:

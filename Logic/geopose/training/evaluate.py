@@ -7,11 +7,13 @@ from the logits); Refine is applied once to the Init poses.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from ..contract import VIEW_PA
 from ..metrics import pose_errors, view_accuracy
 from ..nets import InitNet, RefineNet
+from ..nets.predictors import TorchInit, TorchRefine
 from .data import OnTheFlySource, Renderer
 from .losses import TOTAL
 from .population import TrainingSubject
@@ -24,7 +26,7 @@ def _summary(errors) -> dict[str, float]:
     out = {}
     for name in ("rotation_deg", "translation_norm_mm", "source_distance_mm", "double_geodesic_mm"):
         values = getattr(errors, name)
-        out[f"{name}_median"] = float(values.median())
+        out[f"{name}_median"] = float(np.median(values))
         out[f"{name}_mean"] = float(values.mean())
     return out
 
@@ -48,22 +50,23 @@ def evaluate(
     renderer = Renderer(subjects, render_px)
     source = OnTheFlySource(renderer, "init")
     gen = torch.Generator(subjects[0].channels.device).manual_seed(seed)
-    init.eval()
+    init_p = TorchInit(init)
+    refine_p = TorchRefine(refine) if refine is not None else None
     poses, refs, views, chosen, argmax, refined = [], [], [], [], [], []
     for start in range(0, samples, EVAL_CHUNK):
         batch = source.batch(min(EVAL_CHUNK, samples - start), gen)
         target = batch.target[:, TOTAL : TOTAL + 1]
-        pose, view, logits = init.predict(target, batch.view != VIEW_PA)
+        pose, view, logits = init_p.predict(target.cpu().numpy(), (batch.view != VIEW_PA).cpu().numpy())
+        pose, view, logits = (torch.as_tensor(a, device=target.device) for a in (pose, view, logits))
         poses.append(pose)
         refs.append(batch.pose)
         views.append(batch.view)
         chosen.append(view)
         argmax.append(logits.argmax(1))
-        if refine is not None:
-            refine.eval()
-            render = renderer(batch.subject, pose, slice(TOTAL, TOTAL + 1))
-            D = refine.predict_residual(target, render, view)
-            refined.append(torch.linalg.inv(D) @ pose)
+        if refine_p is not None:
+            render = renderer(batch.subject, pose.float(), slice(TOTAL, TOTAL + 1))
+            D = refine_p.predict_residual(target.cpu().numpy(), render.cpu().numpy(), view.cpu().numpy())
+            refined.append(torch.linalg.inv(torch.as_tensor(D, device=pose.device)) @ pose)
     ref = torch.cat(refs)
     metrics: dict = {
         "samples": samples,

@@ -13,11 +13,12 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from ..contract import MODEL_SDD_MM
-from ..metrics import generalized_dice_loss, mncc
-from ..nets import decode_init_pose, normalize_minmax, residual_from_raw
+from ..metrics.losses import generalized_dice_loss, mncc_similarity
+from ..images import normalize_minmax
 from . import recipe as R
 from .data import Batch, Renderer
 from .population import CHANNELS
+from .poses import init_pose_tensor, residual_tensor
 
 _EPS = 1e-9
 #: Regulariser of the rotation-vector norm (keeps gradients finite at zero rotation).
@@ -87,7 +88,7 @@ def init_loss(
     log-SE3 + double geodesic, projected vessel-fiducial distance (fraction of the image
     width), view cross-entropy and the supervised raw term. ``raw`` is the pose head for the true view."""
     raw = raw.float()
-    pred = decode_init_pose(raw, batch.view)
+    pred = init_pose_tensor(raw, batch.view)
     true = batch.pose.to(pred.dtype)
     terms: dict[str, Tensor] = {}
     terms["param"] = F.smooth_l1_loss(raw, batch.raw, reduction="none").sum(1).mean()
@@ -100,7 +101,7 @@ def init_loss(
     total = total + weights.vessel * terms["fiducial"]
     if weights.render:
         rendered = renderer(batch.subject, pred)
-        terms["mncc"] = mncc(normalize_minmax(rendered[:, TOTAL : TOTAL + 1]), normalize_minmax(batch.target[:, TOTAL : TOTAL + 1])).mean()
+        terms["mncc"] = mncc_similarity(normalize_minmax(rendered[:, TOTAL : TOTAL + 1]), normalize_minmax(batch.target[:, TOTAL : TOTAL + 1])).mean()
         terms["vessel_dice"] = generalized_dice_loss(
             soft_vessel_mask(rendered[:, VESSELS : VESSELS + 1]), soft_vessel_mask(batch.target[:, VESSELS : VESSELS + 1])
         ).mean()
@@ -114,7 +115,7 @@ def refine_loss(raw: Tensor, batch: Batch, weights: LossWeights) -> tuple[Tensor
     raw = raw.float()
     terms: dict[str, Tensor] = {}
     terms["param"] = F.smooth_l1_loss(raw, batch.raw, reduction="none").sum(1).mean()
-    corrected = torch.linalg.inv(residual_from_raw(raw)) @ batch.noisy_pose.to(raw.dtype)
+    corrected = torch.linalg.inv(residual_tensor(raw)) @ batch.noisy_pose.to(raw.dtype)
     terms["geodesic"] = double_geodesic(corrected, batch.pose.to(raw.dtype)).mean()
     total = weights.param * terms["param"] + weights.geodesic * terms["geodesic"]
     return total, {k: float(v.detach()) for k, v in terms.items()}

@@ -1,8 +1,10 @@
 """Training pose sampling about the isoposes and Refine perturbations.
 
 Poses are camera-to-world ``(B, 4, 4)`` in the centred CTA frame (mm, rad);
-Init raw targets follow :func:`geopose.nets.decode_init_pose`, Refine raw
-targets follow :func:`geopose.nets.residual_from_raw` (CONVENTIONS 1, 4, 6).
+Init raw targets follow :func:`geopose.nets.decoding.decode_init_pose`, Refine raw
+targets :func:`geopose.nets.decoding.residual_from_raw` (docs/conventions.md 1, 4, 6);
+:func:`init_pose_tensor` and :func:`residual_tensor` are the same decodings in torch,
+differentiable, for the training losses.
 """
 
 from __future__ import annotations
@@ -15,6 +17,23 @@ from torch import Tensor
 from .. import contract as C
 from ..geometry.rigid import RigidTransform, matrix_to_axis_angle, pose_from_params
 from . import recipe as R
+
+
+def init_pose_tensor(raw: Tensor, view: Tensor) -> Tensor:
+    """Init raw ``(B, 6)`` + view labels ``(B,)`` -> pose ``(B, 4, 4)`` (differentiable
+    :func:`geopose.nets.decoding.decode_init_pose`)."""
+    anchors = torch.tensor(C.VIEW_ANCHOR_RAD, dtype=raw.dtype, device=raw.device)[view]
+    r = raw[:, 0:3] + torch.stack((anchors, torch.zeros_like(anchors), torch.zeros_like(anchors)), dim=1)
+    iso = torch.tensor(C.ISO_TRANSLATION_MM, dtype=raw.dtype, device=raw.device)
+    return pose_from_params(r, raw[:, 3:6] * C.INIT_TRANSLATION_SCALE_MM + iso, rotation="euler_zyx")
+
+
+def residual_tensor(raw: Tensor) -> Tensor:
+    """Refine raw ``(B, 6)`` -> residual ``D`` ``(B, 4, 4)`` (differentiable
+    :func:`geopose.nets.decoding.residual_from_raw`)."""
+    w = raw[:, 0:3] * torch.tensor(C.REFINE_ROTATION_SCALE_RAD, dtype=raw.dtype, device=raw.device)
+    dt = raw[:, 3:6] * torch.tensor(C.REFINE_TRANSLATION_SCALE_MM, dtype=raw.dtype, device=raw.device)
+    return RigidTransform.from_axis_angle(w, dt).matrix
 
 
 def sample_views(n: int, gen: torch.Generator, device: torch.device | str = "cpu") -> Tensor:

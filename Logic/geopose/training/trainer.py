@@ -22,7 +22,8 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
-from ..nets import BackboneConfig, InitNet, NetConfig, RefineNet, build_model, load_model, normalize_minmax, save_model
+from ..images import normalize_minmax
+from ..nets import BackboneConfig, InitNet, NetConfig, RefineNet, build_model, load_model, save_model
 from . import recipe as R
 from .augment import augment
 from .data import BankSource, OnTheFlySource, Renderer
@@ -163,13 +164,15 @@ def calibrate_perturbation(init: InitNet, renderer: Renderer, samples: int, gen:
     from ..contract import VIEW_PA
     from .poses import calibrated_scale
 
+    from ..nets.predictors import TorchInit
+
     source = OnTheFlySource(renderer, "init")
     preds, refs, views = [], [], []
-    init.eval()
+    predictor = TorchInit(init)
     for start in range(0, samples, 8):
         batch = source.batch(min(8, samples - start), gen)
-        pose, _, _ = init.predict(batch.target[:, TOTAL : TOTAL + 1], batch.view != VIEW_PA)
-        preds.append(pose.double())
+        pose, _, _ = predictor.predict(batch.target[:, TOTAL : TOTAL + 1].cpu().numpy(), (batch.view != VIEW_PA).cpu().numpy())
+        preds.append(torch.as_tensor(pose, device=batch.pose.device))
         refs.append(batch.pose.double())
         views.append(batch.view)
     return calibrated_scale(torch.cat(preds), torch.cat(refs), torch.cat(views))

@@ -1,10 +1,10 @@
-"""Pose algebra in numpy (float64), for inference without PyTorch.
+"""Pose algebra in numpy (float64): the poses every registration stage passes on.
 
-The same conventions as ``rigid.py`` / ``carm.py`` (which are torch, batched and
-differentiable): Euler ZYX ``R = Rz @ Ry @ Rx`` and axis-angle rotations in rad,
-GeoPose's rotated-frame translation ``T = [[R, R t], [0, 1]]`` in mm, camera-to-world
-poses ``world = T @ AP_REORIENT @ camera``. ``Testing/Python/test_torch_free.py``
-checks every function against its torch counterpart. Arrays broadcast over leading axes.
+Euler ZYX ``R = Rz @ Ry @ Rx`` and axis-angle rotations in rad, GeoPose's
+rotated-frame translation ``T = [[R, R t], [0, 1]]`` in mm, camera-to-world poses
+``world = T @ AP_REORIENT @ camera`` in the centred CTA frame (docs/conventions.md
+sections 1-2). Arrays broadcast over leading axes. The differentiable torch algebra
+(training, the test-time optimisation) is ``rigid.py``; the two are tested equal.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import contract as C
-from .detector import AP_REORIENT, CArmAngles, Detector, carm_pose_params
+from .detector import AP_REORIENT, CArmAngles, Detector, carm_angles_from_params, carm_pose_params
 
 __all__ = [
     "euler_zyx_to_matrix",
@@ -24,6 +24,7 @@ __all__ = [
     "rotation_angle_rad",
     "isopose",
     "pose_from_carm_angles",
+    "carm_angles_from_pose",
     "source_and_detector_points",
     "project_points",
 ]
@@ -114,6 +115,12 @@ def pose_from_carm_angles(angles: CArmAngles) -> np.ndarray:
     return pose_from_params(*carm_pose_params(angles))
 
 
+def carm_angles_from_pose(pose: np.ndarray, sid_mm: float) -> CArmAngles:
+    """Inverse of :func:`pose_from_carm_angles` for one pose ``(4, 4)``."""
+    r, t = params_from_pose(np.asarray(pose, dtype=np.float64).reshape(4, 4))
+    return carm_angles_from_params(r, t, sid_mm)
+
+
 def source_and_detector_points(pose: np.ndarray, detector: Detector) -> tuple[np.ndarray, np.ndarray]:
     """World positions (mm) of the source ``(3,)`` and of every pixel ``(H, W, 3)`` for one pose ``(4, 4)``."""
     M = np.asarray(pose, dtype=np.float64) @ AP_REORIENT
@@ -121,8 +128,9 @@ def source_and_detector_points(pose: np.ndarray, detector: Detector) -> tuple[np
 
 
 def project_points(pose: np.ndarray, detector: Detector, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World points ``(N, 3)`` -> pixels ``(N, 2)`` (row, col) and depth (mm along the axis) for one pose."""
-    cam_to_world = np.asarray(pose, dtype=np.float64) @ AP_REORIENT
-    world_to_cam = invert(cam_to_world)
-    cam = np.asarray(points_mm, dtype=np.float64) @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
-    return detector.camera_to_pixel(cam), cam[:, 2]
+    """World points ``(N, 3)`` -> pixels (row, col) and depth (mm along the axis): ``(N, 2)`` and ``(N,)``
+    for one pose ``(4, 4)``, ``(B, N, 2)`` and ``(B, N)`` for poses ``(B, 4, 4)``."""
+    world_to_cam = invert(np.asarray(pose, dtype=np.float64) @ AP_REORIENT)
+    cam = np.asarray(points_mm, dtype=np.float64) @ np.swapaxes(world_to_cam[..., :3, :3], -1, -2)
+    cam = cam + world_to_cam[..., None, :3, 3]
+    return detector.camera_to_pixel(cam), cam[..., 2]

@@ -1,9 +1,9 @@
-"""The NCC family of ``measures.py`` in numpy (float64), for inference without PyTorch.
+"""The NCC family in numpy (float64): scores of the refinement gate, the final mNCC and the benchmark.
 
 Same definitions: each image is brought to zero mean and unit (max - min) range,
 then z-scored globally (:func:`ncc`) or per ``patch_px`` patch (:func:`local_ncc`,
 stride 1, no padding); :func:`mncc` mixes them with ``MNCC_GLOBAL_WEIGHT``.
-Images are ``(H, W)``; ``Testing/Python/test_torch_free.py`` checks them against torch.
+Images are ``(H, W)``; the differentiable torch twins are in ``losses.py`` (tested equal).
 """
 
 from __future__ import annotations

@@ -1,0 +1,142 @@
+"""One renderer interface over two kernels: ``make_renderer(volume, engine="numpy" | "torch")``.
+
+A :class:`Renderer` renders line integrals (density x mm, docs/conventions.md section 3)
+of a :class:`~geopose.render.volume.RenderVolume` for camera-to-world poses in the
+centred CTA frame (float64 ``(4, 4)`` or ``(B, 4, 4)``, mm) on a detector, for the
+channels asked for by name; numpy in, numpy out, whichever kernel. Everything but the
+ray-marching kernel is written once here: channel names, the level each render samples
+(the coarsest grid no finer than the rendered pixel's footprint at the volume centre),
+rendering at ``render_px`` and resizing as the networks were trained. The kernels are
+:class:`~geopose.render.numpy_drr.NumpyKernel` (no PyTorch) and the differentiable
+:class:`~geopose.render.drr.DRR` (PyTorch; the test-time optimisation uses its gradients).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from ..geometry.detector import Detector
+from ..images import resize_bilinear
+from .volume import CHANNELS, Level, RenderVolume, footprint_mm
+
+__all__ = ["ENGINES", "Renderer", "NumpyRenderer", "TorchRenderer", "make_renderer", "coarse_detector"]
+
+#: Rendering kernels.
+ENGINES = ("numpy", "torch")
+
+
+def coarse_detector(detector: Detector, render_px: int | None) -> Detector:
+    """The same field of view on ``render_px`` pixels along the longer side (unchanged when None or not smaller)."""
+    if render_px is None or render_px >= max(detector.shape):
+        return detector
+    scale = render_px / max(detector.shape)
+    return detector.resized(max(1, round(detector.rows * scale)), max(1, round(detector.cols * scale)))
+
+
+class Renderer:
+    """Renders ``volume`` (see the module doc); subclasses supply :meth:`_render_level`."""
+
+    engine = ""
+
+    def __init__(self, volume: RenderVolume) -> None:
+        self.volume = volume
+
+    @staticmethod
+    def channel_index(channels: Sequence[str]) -> tuple[int, ...]:
+        """Indices of channel names (``total``, ``cranium``, ``vessels``)."""
+        unknown = [c for c in channels if c not in CHANNELS]
+        if unknown:
+            raise ValueError(f"unknown render channel(s) {unknown}; channels are {CHANNELS}")
+        return tuple(CHANNELS.index(c) for c in channels)
+
+    def level_for_pose(self, pose: np.ndarray, detector: Detector) -> Level:
+        """The level a render of ``pose`` (``(4, 4)`` or the first of a batch) on ``detector`` samples."""
+        source_mm = float(np.linalg.norm(np.asarray(pose, dtype=np.float64).reshape(-1, 4, 4)[0, :3, 3]))
+        return self.volume.level_for(footprint_mm(min(detector.spacing_mm), detector.sdd_mm, max(source_mm, 1.0)))
+
+    def render(
+        self,
+        pose: np.ndarray,
+        detector: Detector,
+        channels: Sequence[str] = ("total",),
+        *,
+        render_px: int | None = None,
+    ) -> np.ndarray:
+        """Line integrals (density x mm), float32: ``(C, H, W)`` for one pose ``(4, 4)``, ``(B, C, H, W)``
+        for ``(B, 4, 4)``. ``render_px``: render on that many pixels along the detector's longer side
+        and resize bilinearly to ``detector`` (how the networks' images were made)."""
+        poses = np.asarray(pose, dtype=np.float64)
+        single = poses.shape == (4, 4)
+        poses = poses.reshape(-1, 4, 4)
+        coarse = coarse_detector(detector, render_px)
+        level = self.level_for_pose(poses, coarse)
+        image = self._render_level(level, poses, coarse, self.channel_index(channels))
+        if coarse is not detector:
+            image = np.stack([resize_bilinear(im, detector.shape) for im in image])
+        return image[0] if single else image
+
+    def _render_level(self, level: Level, poses: np.ndarray, detector: Detector, channels: tuple[int, ...]) -> np.ndarray:
+        """``(B, C', H, W)`` float32 line integrals of ``level`` for ``poses`` ``(B, 4, 4)``."""
+        raise NotImplementedError
+
+
+class NumpyRenderer(Renderer):
+    """The numpy kernel (no PyTorch): :class:`~geopose.render.numpy_drr.NumpyKernel` per level."""
+
+    engine = "numpy"
+
+    def __init__(self, volume: RenderVolume) -> None:
+        super().__init__(volume)
+        self._kernels: dict = {}
+
+    def _render_level(self, level: Level, poses: np.ndarray, detector: Detector, channels: tuple[int, ...]) -> np.ndarray:
+        from .numpy_drr import NumpyKernel
+
+        kernel = self._kernels.get(level.factors)
+        if kernel is None:
+            kernel = self._kernels[level.factors] = NumpyKernel(level.density, level.ijk_to_world, level.step_mm)
+        return np.stack([kernel(p, detector, channels) for p in poses])
+
+
+class TorchRenderer(Renderer):
+    """The torch kernel: a differentiable :class:`~geopose.render.drr.DRR` per level on ``device``."""
+
+    engine = "torch"
+
+    def __init__(self, volume: RenderVolume, device: str = "cpu") -> None:
+        super().__init__(volume)
+        import torch
+
+        self.device = torch.device(device)
+        self._drrs: dict = {}
+
+    def drr(self, level: Level):
+        """The torch DRR module of ``level`` (for differentiable renders)."""
+        drr = self._drrs.get(level.factors)
+        if drr is None:
+            import torch
+
+            from .drr import DRR
+
+            density = torch.as_tensor(level.density, device=self.device)
+            drr = self._drrs[level.factors] = DRR(density, level.ijk_to_world, Detector.model(), step_mm=level.step_mm,
+                                                  channel_names=CHANNELS).to(self.device)
+        return drr
+
+    def _render_level(self, level: Level, poses: np.ndarray, detector: Detector, channels: tuple[int, ...]) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            pose = torch.as_tensor(poses, dtype=torch.float64, device=self.device)
+            return self.drr(level)(pose, detector=detector, channels=channels).cpu().numpy()
+
+
+def make_renderer(volume: RenderVolume, engine: str = "numpy", device: str = "cpu") -> Renderer:
+    """The renderer of ``volume`` on ``engine`` (``numpy`` or ``torch``; ``device`` for torch)."""
+    if engine == "numpy":
+        return NumpyRenderer(volume)
+    if engine == "torch":
+        return TorchRenderer(volume, device)
+    raise ValueError(f"render engine must be one of {ENGINES}, got {engine!r}")

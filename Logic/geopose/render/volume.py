@@ -1,0 +1,174 @@
+"""The CTA as the renderers sample it: density channels on a pyramid of working grids.
+
+Channel 0 is the total density (HU -> [0, 1], docs/conventions.md section 3); each
+further channel is the density inside one mask (``cranium``, ``vessels``). A *level*
+is the CTA grid block-averaged by a power-of-two factor per axis, cropped to the
+box holding any density: a render samples the coarsest level whose voxels are no
+larger than its detector pixels at the volume centre (:meth:`RenderVolume.level_for`),
+so the 96-px network renders of a 0.5 mm CTA sample a 2 mm grid and its 128-px TTO
+renders a 1 mm one. Levels are built on first use, slab by slab (memory stays at a
+few slabs of the full grid), and cached; the density scale is fixed by the full
+grid, so every level shows the same values. numpy only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Mapping, Union
+
+import numpy as np
+
+from ..images import block_mean
+from ..volume import Volume
+from .density import DensityScale
+
+__all__ = ["CHANNELS", "Level", "MaskSource", "RenderVolume", "footprint_mm"]
+
+#: Channel names, in order: the total density, then the density inside each mask.
+CHANNELS = ("total", "cranium", "vessels")
+#: Largest block factor of a level (per axis).
+MAX_FACTOR = 8
+#: Full-grid slices processed at once while building a level (times the level's k factor).
+SLAB_SLICES = 16
+
+#: A mask: a label Volume on the CTA grid (``> 0`` inside), or a function that computes one
+#: from the CTA (called once, on first use).
+MaskSource = Union[Volume, Callable[[], Volume]]
+
+
+def footprint_mm(pixel_mm: float, sdd_mm: float, source_distance_mm: float) -> float:
+    """Size (mm) at ``source_distance_mm`` from the source of a ``pixel_mm`` detector pixel at ``sdd_mm``."""
+    return pixel_mm * source_distance_mm / sdd_mm
+
+
+@dataclass(frozen=True)
+class Level:
+    """One working grid: ``density`` ``(C, K, J, I)`` float32 (channels as :data:`CHANNELS`),
+    ``ijk_to_world`` 4x4 from voxel index to the centred CTA frame (mm), the block
+    ``factors`` (i, j, k) it was averaged by, and the ray-marching step (mm)."""
+
+    density: np.ndarray
+    ijk_to_world: np.ndarray
+    factors: tuple[int, int, int]
+
+    @property
+    def spacing_mm(self) -> tuple[float, float, float]:
+        return tuple(float(v) for v in np.linalg.norm(self.ijk_to_world[:3, :3], axis=0))
+
+    @property
+    def step_mm(self) -> float:
+        """Sampling step along a ray: the smallest voxel size."""
+        return min(self.spacing_mm)
+
+    @property
+    def shape_ijk(self) -> tuple[int, int, int]:
+        _, k, j, i = self.density.shape
+        return (i, j, k)
+
+
+class RenderVolume:
+    """A CTA (HU) with its masks, prepared for rendering: :meth:`level` grids of density channels.
+
+    ``masks`` maps channel names (``cranium``, ``vessels``) to a :data:`MaskSource` on the
+    CTA grid; a channel without a mask is all zeros. ``finest_spacing_mm`` bounds the
+    voxel size of the finest level from below (the CTA's own when None). The CTA array is
+    read, never changed.
+    """
+
+    def __init__(
+        self, cta: Volume, masks: Mapping[str, MaskSource] | None = None, *, finest_spacing_mm: float | None = None
+    ) -> None:
+        unknown = set(masks or {}) - set(CHANNELS[1:])
+        if unknown:
+            raise ValueError(f"unknown mask channel(s) {sorted(unknown)}; channels are {CHANNELS[1:]}")
+        self.cta = cta
+        self._mask_sources = dict(masks or {})
+        self._masks: dict[str, np.ndarray] = {}
+        self.finest_spacing_mm = finest_spacing_mm
+        self._levels: dict[tuple[int, int, int], Level] = {}
+        self._scale: DensityScale | None = None
+
+    @property
+    def channel_names(self) -> tuple[str, ...]:
+        return CHANNELS
+
+    def mask(self, name: str) -> np.ndarray | None:
+        """The ``[k, j, i]`` bool mask of channel ``name`` on the CTA grid (computed on first use), or None."""
+        if name not in self._masks:
+            source = self._mask_sources.get(name)
+            if source is None:
+                return None
+            vol = source() if callable(source) else source
+            if vol.array.shape != self.cta.array.shape:
+                raise ValueError(f"the {name} mask grid {vol.shape_ijk} differs from the CTA grid {self.cta.shape_ijk}")
+            self._masks[name] = np.asarray(vol.array) > 0
+        return self._masks[name]
+
+    # ----------------------------------------------------------------- density
+
+    def density_slab(self, k0: int, k1: int) -> np.ndarray:
+        """Total density of CTA slices ``k0:k1`` (``[k, j, i]`` float32 in [0, 1]; scale of the whole CTA)."""
+        if self._scale is None:
+            self._scale = DensityScale.of(self.cta.array)
+        return self._scale.apply(self.cta.array[k0:k1])
+
+    # ------------------------------------------------------------------ levels
+
+    def factors_for(self, voxel_mm: float) -> tuple[int, int, int]:
+        """Power-of-two block factors (i, j, k) giving voxels no larger than ``voxel_mm``
+        (nor smaller than ``finest_spacing_mm``) per axis."""
+        out = []
+        for s in self.cta.spacing_mm:
+            f = 1
+            while f * 2 <= MAX_FACTOR and f * 2 * s <= voxel_mm * (1 + 1e-6):
+                f *= 2
+            if self.finest_spacing_mm is not None:
+                while f * 2 <= MAX_FACTOR and f * s < self.finest_spacing_mm * (1 - 1e-6):
+                    f *= 2
+            out.append(f)
+        return tuple(out)
+
+    def level_for(self, voxel_mm: float) -> Level:
+        """The coarsest level whose voxels are no larger than ``voxel_mm`` (e.g. a pixel's footprint)."""
+        return self.level(self.factors_for(voxel_mm))
+
+    def level(self, factors: tuple[int, int, int] = (1, 1, 1)) -> Level:
+        """The level of block ``factors`` (i, j, k), built on first use."""
+        factors = tuple(int(f) for f in factors)
+        if factors not in self._levels:
+            self._levels[factors] = self._build(factors)
+        return self._levels[factors]
+
+    @property
+    def levels(self) -> dict[tuple[int, int, int], Level]:
+        """The levels built so far."""
+        return dict(self._levels)
+
+    def _build(self, factors: tuple[int, int, int]) -> Level:
+        fi, fj, fk = factors
+        K = self.cta.array.shape[0]
+        masks = [self.mask(name) for name in CHANNELS[1:]]
+        step = SLAB_SLICES * fk
+        parts: list[list[np.ndarray]] = [[] for _ in CHANNELS]
+        for k0 in range(0, K, step):
+            k1 = min(K, k0 + step)
+            dens = self.density_slab(k0, k1)
+            parts[0].append(block_mean(dens, (fk, fj, fi)))
+            for c, m in enumerate(masks, start=1):
+                slab = dens * m[k0:k1] if m is not None else np.zeros_like(dens)
+                parts[c].append(block_mean(slab, (fk, fj, fi)))
+        density = np.stack([np.concatenate(p, axis=0) for p in parts])
+        # Crop to the box holding density (one empty voxel kept around it).
+        occupied = density[0] > 0
+        lo = np.zeros(3, dtype=int)
+        hi = np.asarray(density.shape[1:])
+        if occupied.any():
+            for axis in range(3):
+                keep = np.flatnonzero(occupied.any(axis=tuple(a for a in range(3) if a != axis)))
+                lo[axis], hi[axis] = max(0, keep[0] - 1), min(density.shape[1 + axis], keep[-1] + 2)
+        density = np.ascontiguousarray(density[:, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]])
+        # Index of level voxel (i, j, k) in full-grid index units: its block centre.
+        scale = np.diag([fi, fj, fk, 1.0]).astype(np.float64)
+        scale[:3, 3] = (np.asarray([fi, fj, fk], dtype=np.float64) - 1.0) / 2.0 + np.asarray([fi, fj, fk]) * lo[::-1]
+        return Level(density, self.cta.ijk_to_centred @ scale, (fi, fj, fk))
+

@@ -1,0 +1,287 @@
+"""One pipeline over two engines: the numpy and torch render kernels agree, the CTA levels are
+what they claim, both backends give the same poses at the default settings, and a whole
+registration (library and Slicer logic) runs in a process where torch cannot be imported."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch.nn import functional as F
+
+from geopose import contract as C
+from geopose.bench.cases import phantom_case
+from geopose.cta import save_volume
+from geopose.geometry import Detector, isopose
+from geopose.geometry import poses as N
+from geopose.nets.decoding import select_view
+from geopose.options import RegistrationOptions
+from geopose.register import register_case
+from geopose.render.density import hu_to_density
+from geopose.render.renderer import NumpyRenderer, TorchRenderer
+from geopose.images import block_mean
+from geopose.render.volume import RenderVolume
+from geopose.resources import default_models_dir
+from geopose.volume import Volume
+
+REPO = Path(__file__).resolve().parents[2]
+RNG = np.random.default_rng(7)
+#: Same answer on either engine (issue 13): poses within these of each other.
+ENGINE_AGREEMENT_MM = 0.5
+ENGINE_AGREEMENT_DEG = 0.1
+
+
+def _small_volume() -> tuple[Volume, Volume, Volume]:
+    """A 40^3 head-like blob (HU) with a bone shell and a 'vessel' rod, on an oblique grid,
+    with its cranium and vessel masks."""
+    k, j, i = np.mgrid[:40, :36, :44]
+    r = np.sqrt(((i - 22) / 18.0) ** 2 + ((j - 18) / 15.0) ** 2 + ((k - 20) / 17.0) ** 2)
+    hu = np.where(r < 1, 40.0, -1000.0) + np.where((r > 0.85) & (r < 1), 900.0, 0.0)
+    rod = (abs(i - 20) < 2) & (abs(j - 15) < 2) & (r < 0.8)
+    hu = np.where(rod, 300.0, hu).astype(np.float32)
+    affine = np.diag([2.0, 2.2, 2.5, 1.0])
+    affine[:3, :3] = N.euler_zyx_to_matrix(np.array([0.2, -0.1, 0.05])) @ affine[:3, :3]
+    cta = Volume(hu, affine)
+    return cta, cta.like((r < 1).astype(np.uint8)), cta.like(rod.astype(np.uint8))
+
+
+def test_levels_are_the_density_block_averaged_and_cropped():
+    cta, cranium, vessels = _small_volume()
+    volume = RenderVolume(cta, {"cranium": cranium, "vessels": vessels})
+    full = volume.level((1, 1, 1))
+    density = hu_to_density(cta.array)
+    # Cropped to the occupied box plus one empty voxel: same values where it overlaps.
+    occupied = np.argwhere(density > 0)
+    lo = np.maximum(occupied.min(0) - 1, 0)
+    np.testing.assert_allclose(full.density[0], density[lo[0]:lo[0] + full.density.shape[1], lo[1]:lo[1] + full.density.shape[2],
+                                                       lo[2]:lo[2] + full.density.shape[3]], atol=1e-6)
+    assert full.density[0].sum() == pytest.approx(density.sum(), rel=1e-5)
+    assert full.density[2].sum() == pytest.approx((density * vessels.array).sum(), rel=1e-5)
+    # The index -> world map still puts every voxel where it was.
+    np.testing.assert_allclose(full.ijk_to_world @ [0, 0, 0, 1], cta.ijk_to_centred @ [lo[2], lo[1], lo[0], 1], atol=1e-9)
+    coarse = volume.level((2, 2, 2))
+    np.testing.assert_allclose(coarse.spacing_mm, 2 * np.asarray(cta.spacing_mm))
+    # Block averages keep the line-integral mass (each coarse voxel is 8 x larger).
+    assert 8 * coarse.density[0].sum() == pytest.approx(density.sum(), rel=1e-4)
+    np.testing.assert_allclose(block_mean(np.arange(12.0).reshape(1, 2, 6), (1, 2, 3)), [[[4.0, 7.0]]])
+    # The coarsest level no finer than a voxel size, power-of-two factors, bounded below by the option.
+    assert volume.factors_for(2.1) == (1, 1, 1) and volume.factors_for(4.5) == (2, 2, 1)
+    assert RenderVolume(cta, finest_spacing_mm=4.0).factors_for(1.0) == (2, 2, 2)
+
+
+def test_numpy_and_torch_kernels_render_the_same():
+    cta, cranium, vessels = _small_volume()
+    volume = RenderVolume(cta, {"cranium": cranium, "vessels": vessels})
+    ours, theirs = NumpyRenderer(volume), TorchRenderer(volume)
+    det = Detector(48, 40, (2.0, 2.4), 1020.0)
+    pose = N.pose_from_params(np.array([0.3, 0.1, -0.05]), np.array([4.0, 620.0, -6.0]))
+    want = theirs.render(pose, det, ("total", "cranium", "vessels"))
+    got = ours.render(pose, det, ("total", "cranium", "vessels"))
+    assert got.shape == want.shape == (3, 48, 40) and want[2].max() > 1.0
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * want.max())
+    # Batched poses render like single ones.
+    both = ours.render(np.stack((pose, isopose(C.VIEW_PA))), det, ("vessels",))
+    np.testing.assert_allclose(both[0], got[2:3], atol=1e-6)
+    # render_px: a coarse render resized bilinearly (torch's interpolate, align_corners=False).
+    with torch.no_grad():
+        level = theirs.level_for_pose(pose, det.resized(24, 20))
+        small = theirs.drr(level)(torch.as_tensor(pose)[None], detector=det.resized(24, 20), channels=(0,))
+        want_up = F.interpolate(small, size=det.shape, mode="bilinear", align_corners=False)[0].numpy()
+    np.testing.assert_allclose(ours.render(pose, det, render_px=24), want_up, rtol=1e-4, atol=1e-4 * want_up.max())
+    with pytest.raises(ValueError, match="unknown render channel"):
+        ours.render(pose, det, ("bone",))
+
+
+def test_a_render_samples_the_level_its_pixels_resolve():
+    cta, _, _ = _small_volume()
+    fine = Volume(np.repeat(np.repeat(np.repeat(cta.array, 2, 0), 2, 1), 2, 2), cta.ijk_to_ras @ np.diag([0.5, 0.5, 0.5, 1]))
+    renderer = NumpyRenderer(RenderVolume(fine))
+    # The 96-px network render: 3.2 mm pixels at the detector, 2.04 mm at the volume centre; voxels
+    # of (1.0, 1.1, 1.25) mm double only along i.
+    model = Detector.model().resized(96)
+    assert renderer.level_for_pose(isopose(C.VIEW_PA), model).factors == (2, 1, 1)
+    assert renderer.level_for_pose(isopose(C.VIEW_PA), Detector.model()).factors == (1, 1, 1)
+
+
+def test_numpy_view_rule():
+    logits = RNG.normal(size=(6, 3))
+    lateral = np.array([True, False, True, True, False, False])
+    view = select_view(logits, lateral)
+    assert all(v == C.VIEW_PA for v, lat in zip(view, lateral) if not lat)
+    assert all(v == (C.VIEW_LAT_PLUS if lg[2] > lg[0] else C.VIEW_LAT_MINUS) for v, lg, lat in zip(view, logits, lateral) if lat)
+    np.testing.assert_array_equal(select_view(logits, None), logits.argmax(1))
+
+
+# ------------------------------------------------------------ the two backends
+
+
+@pytest.fixture(scope="module")
+def phantom_folder(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("engines")
+    case = phantom_case(5003, folder, spacing_mm=3.0)
+    save_volume(case.cranium, folder / "cranium.nii.gz")
+    save_volume(case.vessels, folder / "vessels.nii.gz")
+    return folder
+
+
+def _pose_gap(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(mm, deg) between two camera poses: how far apart the CTA centre lies in the two camera frames,
+    and the angle between the rotations."""
+    centre = [N.invert(p)[:3, 3] for p in (a, b)]  # the world origin in each camera frame
+    return float(np.linalg.norm(centre[0] - centre[1])), float(np.degrees(N.rotation_angle_rad(a[:3, :3].T @ b[:3, :3])))
+
+
+def test_both_backends_give_the_same_registration_at_the_defaults(phantom_folder):
+    """torch and onnxruntime + numpy, every option at its default (TTO included): the same views,
+    the same accepted proposals, and final poses within 0.5 mm / 0.1 deg."""
+    case = phantom_case(5003, phantom_folder, spacing_mm=3.0)
+    results = {
+        backend: register_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels,
+                               options=RegistrationOptions(backend=backend))
+        for backend in ("torch", "onnxruntime")
+    }
+    a, b = results["torch"], results["onnxruntime"]
+    assert a.engine["renderer"] == "torch" and b.engine["renderer"] == "numpy" and b.engine["backend"] == "onnxruntime"
+    assert a.engine["render_px"] == b.engine["render_px"] == 96
+    for key in ("pa", "lat"):
+        va, vb = a.views[key], b.views[key]
+        assert va.init.view == vb.init.view
+        assert [p.accepted for p in va.refine.proposals] == [p.accepted for p in vb.refine.proposals]
+        for stage in ("init", "refine", "final"):
+            mm, deg = _pose_gap(va.stage_poses[stage], vb.stage_poses[stage])
+            assert mm < ENGINE_AGREEMENT_MM and deg < ENGINE_AGREEMENT_DEG, (key, stage, mm, deg)
+        assert va.quality.flag == vb.quality.flag
+        assert va.final_mncc == pytest.approx(vb.final_mncc, abs=1e-3)
+
+
+# ------------------------------------------------------------ without torch
+_BLOCK_TORCH = """
+import sys
+
+class _NoTorch:
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch" or name.startswith("torch."):
+            raise ImportError("PyTorch is blocked in this test process")
+        return None
+
+sys.meta_path.insert(0, _NoTorch())
+"""
+
+_LIBRARY_RUN = """
+import json, sys
+from geopose.cta import load_cta
+from geopose.dsa import read_dsa
+from geopose.register import register_case
+from geopose.register.record import build_record
+
+folder = sys.argv[1]
+cta = load_cta(f"{folder}/cta.nii.gz")
+cranium = load_cta(f"{folder}/cranium.nii.gz", check_hu=False)
+vessels = load_cta(f"{folder}/vessels.nii.gz", check_hu=False)
+runs = {key: read_dsa(f"{folder}/dsa_{key}.dcm") for key in ("pa", "lat")}
+seen = []
+result = register_case(cta, runs, cranium_mask=cranium, segmentation=vessels,
+                       progress=lambda stage, fraction, message: seen.append((stage, message)))
+record = build_record(result, runs)
+json.dump({"record": record, "seen": seen, "torch_loaded": "torch" in sys.modules}, open(f"{folder}/numpy.json", "w"))
+"""
+
+
+def _run_without_torch(script: str, *args: str) -> None:
+    code = _BLOCK_TORCH + textwrap.dedent(script)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=600,
+        env={**os.environ, "PYTHONPATH": str(REPO / "Logic")},
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+
+
+def test_registration_runs_without_torch_and_matches_the_torch_engine(phantom_folder):
+    """The default options in a process that cannot import torch: onnxruntime + numpy, the TTO
+    skipped and said so, and the same poses as the torch engine without TTO."""
+    if not (default_models_dir() / "geopose_init.onnx").is_file():
+        pytest.skip("no shipped ONNX models")
+    _run_without_torch(_LIBRARY_RUN, str(phantom_folder))
+    out = json.loads((phantom_folder / "numpy.json").read_text())
+    assert not out["torch_loaded"]
+    stages = {stage for stage, _ in out["seen"]}
+    assert {"prepare", "calibration", "init", "refine", "tto", "done"} <= stages
+    assert any("needs PyTorch" in message for stage, message in out["seen"] if stage == "tto")
+    record = out["record"]
+    assert record["environment"]["torch"] == "not installed" and "tto_trace" not in record
+    assert record["engine"]["backend"] == "onnxruntime" and "skipped" in record["engine"]["tto"]
+    assert record["notes"] and "needs PyTorch" in record["notes"][0]
+
+    case = phantom_case(5003, phantom_folder, spacing_mm=3.0)
+    result = register_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels,
+                           options=RegistrationOptions(backend="torch", iterations=0))
+    for key in ("pa", "lat"):
+        view = record["views"][key]
+        want = result.views[key].final_pose
+        mm, deg = _pose_gap(np.asarray(view["pose_centred"]), want)
+        assert mm < ENGINE_AGREEMENT_MM and deg < ENGINE_AGREEMENT_DEG, (key, mm, deg)
+        assert view["view_label"] == result.views[key].init.view
+        assert view["refinement"]["accepted"] == result.views[key].refine.accepted
+        assert view["quality"]["flag"] == result.views[key].quality.flag
+
+
+_SLICER_RUN = """
+import importlib.util, json, sys
+import slicer
+from geopose import mrml
+
+folder, repo = sys.argv[1], sys.argv[2]
+slicer.__path__.append(f"{repo}/Testing/SlicerStandIns/slicer")
+slicer.mrmlScene = scene = mrml.new_scene()
+spec = importlib.util.spec_from_file_location("GeoPose", f"{repo}/GeoPoseModule/GeoPose.py")
+module = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(module)
+logic = module.GeoPoseLogic()
+cta = mrml.read_volume_node(scene, f"{folder}/cta.nii.gz", "CTA")
+pa, _ = logic.importDSA(f"{folder}/dsa_pa.dcm", "PA", ctaNode=cta)
+lat, _ = logic.importDSA(f"{folder}/dsa_lat.dcm", "LAT", ctaNode=cta)
+try:
+    logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, backend="torch")
+    refused = ""
+except ValueError as exc:
+    refused = str(exc)
+messages = []
+out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, iterations=25, modelClipPercentiles=(2, 98),
+                     progress=lambda s, f, m: messages.append(m))
+json.dump({
+    "refused": refused,
+    "messages": messages,
+    "notes": out["record"]["notes"],
+    "options": out["record"]["options"],
+    "engine": out["record"]["engine"],
+    "torch_version": out["record"]["environment"]["torch"],
+    "pose_ras": {k: mrml.transform_matrix(out[f"{k}Pose"]).tolist() for k in ("pa", "lat")},
+    "record_pose_ras": {k: out["record"]["views"][k]["pose_ras"] for k in ("pa", "lat")},
+    "table_rows": out["table"].GetTable().GetNumberOfRows(),
+    "torch_loaded": "torch" in sys.modules,
+}, open(f"{folder}/slicer.json", "w"))
+"""
+
+
+def test_slicer_logic_without_torch_runs_init_and_refine(phantom_folder):
+    pytest.importorskip("slicer", reason="needs the slicer-core wheel (Slicer's MRML in Python)")
+    if not (default_models_dir() / "geopose_init.onnx").is_file():
+        pytest.skip("no shipped ONNX models")
+    _run_without_torch(_SLICER_RUN, str(phantom_folder), str(REPO))
+    out = json.loads((phantom_folder / "slicer.json").read_text())
+    assert not out["torch_loaded"]
+    assert "PyTorch is not installed" in out["refused"] and "onnxruntime" in out["refused"]
+    assert any("needs PyTorch" in m for m in out["messages"])
+    assert out["notes"] and "skipped" in out["notes"][0]
+    assert out["engine"]["backend"] == "onnxruntime" and out["torch_version"] == "not installed"
+    for key in ("pa", "lat"):
+        np.testing.assert_allclose(out["pose_ras"][key], out["record_pose_ras"][key], atol=1e-6)
+    assert out["table_rows"] == 2
+    assert out["options"]["model_clip_percentiles"] == [2.0, 98.0] and out["options"]["iterations"] == 25
