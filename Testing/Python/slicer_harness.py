@@ -25,6 +25,8 @@ UI_FILE = REPO / "Resources" / "UI" / "GeoPose.ui"
 SLICER_TAGS = ("v5.8.1", "v5.12.3")
 #: Modules of Slicer's Python layer that :func:`load_module` swaps per tag.
 _SLICER_LAYER = ("slicer.ScriptedLoadableModule", "slicer.i18n", "slicer.parameterNodeWrapper", "slicer.packaging")
+#: Widgets made by :func:`new_widget`; :func:`unload` cleans them up as Slicer does when unloading a module.
+_WIDGETS: list = []
 #: Application-level names :func:`load_module` sets on ``slicer``.
 _APP_NAMES = ("app", "selfTests", "qMRMLWidget", "qMRMLNodeComboBox", "qMRMLTableView", "qMRMLSliderWidget",
               "qMRMLSpinBox", "qMRMLRangeWidget")
@@ -186,6 +188,8 @@ def unload() -> None:
     """Remove what :func:`load_module` added (the wheel's ``slicer`` is left as it was)."""
     import slicer
 
+    while _WIDGETS:
+        _WIDGETS.pop().cleanup()
     _purge()
     slicer.__path__[:] = [p for p in slicer.__path__ if not p.startswith(str(slicer_api()))]
     if "mrmlScene" in vars(slicer):
@@ -209,4 +213,5 @@ def new_widget(module):
     widget = module.GeoPoseWidget(parent)
     widget.setup()
     parent.isEntered = True
+    _WIDGETS.append(widget)
     return widget
