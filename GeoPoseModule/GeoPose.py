@@ -85,6 +85,7 @@ REQUIREMENTS = (
     "pylibjpeg-openjpeg>=2.3",
     "pylibjpeg-rle>=2.0",
     "onnxruntime>=1.18",
+    "Pillow>=10",
 )
 #: PyTorch floor: the release the library is tested with (pyproject.toml); installed through
 #: the PyTorch extension, which picks the CUDA build. It needs Python 3.10 (Slicer 5.10+).
