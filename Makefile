@@ -5,6 +5,10 @@ BIN := $(VENV)/bin
 
 .PHONY: setup demo test test-slow bench clean
 
+# Slicer 5.8's Python (3.9) with its pydicom 2.4.4, for Testing/Python/test_python39.py.
+PY39 ?= $(firstword $(wildcard $(shell pyenv root 2>/dev/null)/versions/3.9*/bin/python3.9) python3.9)
+VENV39 := .venv-py39
+
 $(BIN)/geopose: pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
@@ -14,17 +18,23 @@ $(BIN)/geopose: pyproject.toml
 
 setup: $(BIN)/geopose
 
+# Built when a Python 3.9 is found; without one, test_python39 skips and says so.
+$(VENV39)/.installed: Testing/Python39/requirements.txt
+	@if command -v $(PY39) >/dev/null 2>&1; then \
+		$(PY39) -m venv $(VENV39) && $(VENV39)/bin/python -m pip install -q -r Testing/Python39/requirements.txt && touch $@; \
+	else echo "no Python 3.9 found: the Slicer 5.8 (Python 3.9) check will be skipped"; fi
+
 demo: setup
 	$(BIN)/geopose demo --out demo_out
 
-test: setup
+test: setup $(VENV39)/.installed
 	$(BIN)/python -m pytest -q
 
 test-slow: setup
 	GEOPOSE_SLOW=1 $(BIN)/python -m pytest -q
 
 clean:
-	rm -rf $(VENV) demo_out
+	rm -rf $(VENV) $(VENV39) demo_out
 
 # Renderer benchmark against DiffDRR 0.6.1, which lives in its own environment
 # (.venv-diffdrr, built once by benchmarks/setup_diffdrr_env.sh). Tables go to

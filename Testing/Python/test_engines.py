@@ -233,27 +233,28 @@ def test_registration_runs_without_torch_and_matches_the_torch_engine(phantom_fo
 
 
 _SLICER_RUN = """
-import importlib.util, json, sys
-import slicer
+import json, sys
 from geopose import mrml
+from geopose.errors import InputError
+from geopose.options import RegistrationOptions
 
 folder, repo = sys.argv[1], sys.argv[2]
-slicer.__path__.append(f"{repo}/Testing/SlicerStandIns/slicer")
-slicer.mrmlScene = scene = mrml.new_scene()
-spec = importlib.util.spec_from_file_location("GeoPose", f"{repo}/GeoPoseModule/GeoPose.py")
-module = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(module)
+sys.path.insert(0, f"{repo}/Testing/Python")
+import slicer_harness
+
+scene = mrml.new_scene()
+module = slicer_harness.load_module(slicer_harness.SLICER_TAGS[-1], scene)
 logic = module.GeoPoseLogic()
 cta = mrml.read_volume_node(scene, f"{folder}/cta.nii.gz", "CTA")
 pa, _ = logic.importDSA(f"{folder}/dsa_pa.dcm", "PA", ctaNode=cta)
 lat, _ = logic.importDSA(f"{folder}/dsa_lat.dcm", "LAT", ctaNode=cta)
 try:
-    logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, backend="torch")
+    logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, options=RegistrationOptions(backend="torch"))
     refused = ""
-except ValueError as exc:
+except InputError as exc:
     refused = str(exc)
 messages = []
-out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, iterations=25, modelClipPercentiles=(2, 98),
+out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, options=RegistrationOptions(iterations=25, model_clip_percentiles=(2, 98)),
                      progress=lambda s, f, m: messages.append(m))
 json.dump({
     "refused": refused,
@@ -277,7 +278,7 @@ def test_slicer_logic_without_torch_runs_init_and_refine(phantom_folder):
     _run_without_torch(_SLICER_RUN, str(phantom_folder), str(REPO))
     out = json.loads((phantom_folder / "slicer.json").read_text())
     assert not out["torch_loaded"]
-    assert "PyTorch is not installed" in out["refused"] and "onnxruntime" in out["refused"]
+    assert "is not installed: install the PyTorch extension" in out["refused"] and "backend 'onnxruntime'" in out["refused"]
     assert any("needs PyTorch" in m for m in out["messages"])
     assert out["notes"] and "skipped" in out["notes"][0]
     assert out["engine"]["backend"] == "onnxruntime" and out["torch_version"] == "not installed"

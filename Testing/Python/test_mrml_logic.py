@@ -1,41 +1,34 @@
-"""GeoPoseLogic (GeoPoseModule/GeoPose.py) on real MRML (slicer-core), imported with the
-test-only stand-ins of Testing/SlicerStandIns for the Qt-bound scripted-module layer."""
+"""GeoPoseLogic (GeoPoseModule/GeoPose.py) on real MRML (slicer-core) and Slicer's real Python
+layer (``slicer_harness``: shared/slicer-api, newest release): result nodes, DSA nodes, import."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import os
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 
 slicer = pytest.importorskip("slicer", reason="needs the slicer-core wheel (Slicer's MRML in Python)")
 
+import slicer_harness as H  # noqa: E402
 from geopose import contract as C  # noqa: E402
 from geopose import mrml  # noqa: E402
-from geopose.dsa import DSAInputError, DSARun  # noqa: E402
+from geopose.dsa import DSARun  # noqa: E402
+from geopose.errors import InputError  # noqa: E402
+from geopose.options import RegistrationOptions  # noqa: E402
 from geopose.geometry import CArmAngles, Detector, pose_from_carm_angles  # noqa: E402
 from test_mrml_adapters import _cta, _pose  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[2]
-STAND_INS = REPO / "Testing" / "SlicerStandIns" / "slicer"
-
-
 @pytest.fixture()
 def module():
-    """GeoPose.py imported against a fresh ``slicer.mrmlScene``."""
-    if str(STAND_INS) not in slicer.__path__:
-        slicer.__path__.append(str(STAND_INS))
-    slicer.mrmlScene = mrml.new_scene()
-    spec = importlib.util.spec_from_file_location("GeoPose", REPO / "GeoPoseModule" / "GeoPose.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    """GeoPose.py on the newest Slicer Python layer, with a fresh ``slicer.mrmlScene``."""
+    if not H.slicer_api().is_dir():
+        pytest.skip(f"Slicer's Python layer not found at {H.slicer_api()}")
+    mod = H.load_module(H.SLICER_TAGS[-1], mrml.new_scene())
     yield mod
-    del slicer.mrmlScene
+    H.unload()
 
 
 DET = Detector(40, 48, (0.8, 0.8), 1000.0)
@@ -51,22 +44,22 @@ def _result(poses: dict[str, np.ndarray]) -> SimpleNamespace:
     """A registration record with the fields GeoPoseLogic.addResultNodes reads."""
     views = {}
     for n, (key, pose) in enumerate(poses.items()):
-        t = torch.as_tensor(pose)[None]
-        shifted = t.clone()
-        shifted[0, :3, 3] += torch.tensor([3.0, 4.0, 0.0], dtype=t.dtype)
+        shifted = pose.copy()
+        shifted[:3, 3] += [3.0, 4.0, 0.0]
         views[key] = SimpleNamespace(
-            final_pose=t, stage_poses={"init": shifted, "final": t}, final_mncc=0.5 + 0.1 * n,
+            final_pose=pose, stage_poses={"init": shifted, "final": pose}, final_mncc=0.5 + 0.1 * n,
             silhouette_dice=0.9, quality=SimpleNamespace(flag="ok" if n else "doubtful", reasons=() if n else ("low mNCC",)),
             prepared=SimpleNamespace(map=np.full(DET.shape, 7.0 + n, np.float32)),
         )
-    return SimpleNamespace(views=views, runtimes_s={"init": 0.02, "total": 1.5}, device="cpu")
+    return SimpleNamespace(views=views, runtimes_s={"init": 0.02, "total": 1.5}, engine={"backend": "torch", "device": "cpu"})
 
 
 def test_module_metadata(module):
-    parent = SimpleNamespace()
+    parent = SimpleNamespace(path=str(H.MODULE_FILE))
     module.GeoPose(parent)
     assert parent.title == "GeoPose" and parent.categories == ["Registration"]
     assert "van Herten" in parent.acknowledgementText and "projection-space calibration" in parent.acknowledgementText
+    assert "5.8 or later" in parent.helpText and parent.contributors == list(module.CONTRIBUTORS)
 
 
 def test_add_result_nodes_places_every_output(module):
@@ -127,13 +120,14 @@ def test_dsa_run_from_node_uses_attributes_and_overrides(module):
         f = slicer.vtkMRMLScalarVolumeNode()
         f.SetAndObserveImageData(mrml.volumes.image_data_from_array(run.frames[n][None]))
         bare.SetDataNodeAtValue(f, str(n))
-    with pytest.raises(DSAInputError, match="Geometry overrides"):
+    with pytest.raises(ValueError, match="missing in DSA node 'bare'"):
         logic.dsaRunFromNode(bare)
     geo = {"primary_deg": 0.0, "secondary_deg": 0.0, "sid_mm": 1000.0, "sod_mm": 650.0, "pixel_spacing_mm": (0.8, 0.8)}
     assert logic.dsaRunFromNode(bare, geo).detector == DET
     p = logic.getParameterNode()
     assert logic.overridesFromParameters(p, "pa") == {}
-    p.overrideGeometry, p.primaryDegLAT, p.sidMmLAT, p.pixelSpacingMmLAT = True, -88.0, 1100.0, 0.3
+    p.overrideGeometry = True
+    p.geometryLAT.primaryDeg, p.geometryLAT.sidMm, p.geometryLAT.pixelSpacingMm = -88.0, 1100.0, 0.3
     assert logic.overridesFromParameters(p, "lat") == {
         "primary_deg": -88.0, "secondary_deg": 0.0, "sid_mm": 1100.0, "pixel_spacing_mm": (0.3, 0.3)}
 
@@ -144,10 +138,10 @@ def test_register_without_torch_says_what_to_install(module, monkeypatch):
     logic = module.GeoPoseLogic()
     monkeypatch.setattr(logic, "torchAvailable", lambda: False)
     before = scene.GetNumberOfNodes()
-    with pytest.raises(RuntimeError, match="PyTorch is not installed: install the PyTorch extension"):
-        logic.register(cta=cta_node, dsaPA=cta_node, dsaLAT=cta_node, backend="torch")
-    with pytest.raises(ValueError, match="backend must be one of"):
-        logic.register(cta=cta_node, dsaPA=cta_node, dsaLAT=cta_node, backend="tensorflow")
+    with pytest.raises(InputError, match="is not installed: install the PyTorch extension"):
+        logic.register(cta=cta_node, dsaPA=cta_node, dsaLAT=cta_node, options=RegistrationOptions(backend="torch"))
+    with pytest.raises(InputError, match="select a CTA volume and a PA and a lateral DSA run"):
+        logic.register(cta=cta_node, dsaPA=None, dsaLAT=cta_node)
     assert scene.GetNumberOfNodes() == before  # nothing half-made
 
 
@@ -161,7 +155,7 @@ def test_import_dsa_places_run_on_nominal_plane(module, tmp_path):
     path = write_dsa_nifti(run, tmp_path / "lat.nii.gz")
     seq, browser = module.GeoPoseLogic().importDSA(str(path), "LAT", ctaNode=cta_node)
     np.testing.assert_allclose(mrml.frames_from_sequence(seq), run.frames, rtol=1e-5, atol=1e-3)
-    nominal = cta.centred_to_ras @ pose_from_carm_angles(run.angles).matrix[0].numpy()
+    nominal = cta.centred_to_ras @ pose_from_carm_angles(run.angles)
     np.testing.assert_allclose(mrml.volume_from_node(seq.GetNthDataNode(0)).ijk_to_ras,
                                mrml.detector_ijk_to_ras(run.detector, nominal), atol=1e-6)
     assert browser.GetProxyNode(seq) is not None
@@ -186,7 +180,7 @@ def test_register_phantom_end_to_end(module, tmp_path):
     pa, _ = logic.importDSA(str(tmp_path / "dsa_pa.dcm"), "PA", ctaNode=cta)
     lat, _ = logic.importDSA(str(tmp_path / "dsa_lat.dcm"), "LAT", ctaNode=cta)
     before = mrml.volume_from_node(cta).array.copy()
-    out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, segmentation=seg, iterations=5, device="cpu")
+    out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, segmentation=seg, options=RegistrationOptions(iterations=5, device="cpu"))
     ctaVol = mrml.volume_from_node(cta)
     np.testing.assert_array_equal(ctaVol.array, before)
     for key in ("pa", "lat"):

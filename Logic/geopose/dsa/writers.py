@@ -20,6 +20,10 @@ __all__ = ["write_dsa_dicom", "write_dsa_nifti", "quantize_frames"]
 
 #: Margin (px) of burnt-in text from the top-left corner.
 BURN_IN_MARGIN_PX = 4
+#: ``Dataset.save_as`` keyword for a standard file (preamble + file meta): pydicom 3's
+#: ``enforce_file_format=True`` is ``write_like_original=False`` in pydicom 2.4 (bundled
+#: with Slicer 5.8 and 5.10).
+_STANDARD_FILE = {"enforce_file_format": True} if int(pydicom.__version__.split(".")[0]) >= 3 else {"write_like_original": False}
 
 
 def quantize_frames(frames: np.ndarray, bits: int) -> tuple[np.ndarray, float, float]:
@@ -123,7 +127,7 @@ def write_dsa_dicom(
         ds.RescaleType = "US"
     ds.PixelData = stored.tobytes()
     path.parent.mkdir(parents=True, exist_ok=True)
-    ds.save_as(path, enforce_file_format=True)
+    ds.save_as(path, **_STANDARD_FILE)
     return path
 
 

@@ -16,7 +16,7 @@ except ImportError as exc:  # pragma: no cover - depends on the environment
         "or install the 'slicer-core' wheel (pip install slicer-core)"
     ) from exc
 
-from .scene import load_mrb, matrix_from_vtk, matrix_to_vtk, new_scene, prepare_scene, save_mrb, sequences_logic
+from .scene import load_mrb, matrix_from_vtk, matrix_to_vtk, new_scene, output_node, prepare_scene, save_mrb, sequences_logic
 from .volumes import (
     labelmap_from_segmentation,
     read_volume_node,
@@ -51,7 +51,7 @@ __all__ = [
     "camera_node", "camera_to_ras_points", "detector_ijk_to_ras", "dsa_sequence_node", "frames_from_node",
     "frames_from_sequence", "frustum_model_node",
     "geometry_from_attributes", "labelmap_from_segmentation", "load_mrb", "matrix_from_vtk", "matrix_to_vtk",
-    "new_scene", "plane_volume_node", "pose_transform_node", "prepare_scene", "project_labels",
+    "new_scene", "output_node", "plane_volume_node", "pose_transform_node", "prepare_scene", "project_labels",
     "projected_segmentation_node", "read_volume_node", "result_table_node", "save_mrb",
     "segment_colors", "segmentation_from_labelmap", "segmentation_from_masks", "set_geometry_attributes", "volume_from_node", "volume_to_node",
     "write_volume_node", "sequences_logic", "transform_matrix",

@@ -2,7 +2,8 @@
 projected segmentations on the detector plane, and the result table.
 
 Poses here are camera-to-world 4x4 matrices (mm): ``pose_ras`` maps the camera
-frame to patient RAS, ``pose_centred`` to the centred CTA frame.
+frame to patient RAS, ``pose_centred`` to the centred CTA frame. Each builder takes an
+optional existing ``node`` to update in place (a re-run then adds no nodes).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from ..geometry.detector import AP_REORIENT, Detector
 from ..render.numpy_drr import NumpyKernel
 from ..volume import Volume
 from .plane import detector_ijk_to_ras, detector_index_to_camera
-from .scene import matrix_from_vtk, matrix_to_vtk
+from .scene import matrix_from_vtk, matrix_to_vtk, output_node
 from .volumes import segmentation_from_masks
 
 __all__ = [
@@ -37,9 +38,11 @@ __all__ = [
 PROJECTION_THRESHOLD_VOXELS = 0.25
 
 
-def pose_transform_node(scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, name: str) -> "slicer.vtkMRMLLinearTransformNode":
+def pose_transform_node(
+    scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, name: str, node=None
+) -> "slicer.vtkMRMLLinearTransformNode":
     """A linear transform node whose to-parent matrix is the camera-to-RAS pose."""
-    node = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", name)
+    node = output_node(scene, "vtkMRMLLinearTransformNode", name, node)
     node.SetMatrixTransformToParent(matrix_to_vtk(pose_ras))
     return node
 
@@ -63,11 +66,13 @@ def camera_to_ras_points(pose_ras: np.ndarray, detector: Detector) -> dict[str, 
     return {"source": m[:3, 3].copy(), "centre": centre, "corners": corners, "up": m[:3, :3] @ np.array([0.0, 1.0, 0.0])}
 
 
-def camera_node(scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, detector: Detector, name: str) -> "slicer.vtkMRMLCameraNode":
+def camera_node(
+    scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, detector: Detector, name: str, node=None
+) -> "slicer.vtkMRMLCameraNode":
     """A camera at the X-ray source looking at the detector centre, image row 0 up,
     with the detector's vertical field of view (deg): the 3D view then sees what the C-arm sees."""
     pts = camera_to_ras_points(pose_ras, detector)
-    node = scene.AddNewNodeByClass("vtkMRMLCameraNode", name)
+    node = output_node(scene, "vtkMRMLCameraNode", name, node)
     node.SetPosition(*pts["source"])
     node.SetFocalPoint(*pts["centre"])
     node.SetViewUp(*pts["up"])
@@ -77,7 +82,7 @@ def camera_node(scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, detector: De
 
 
 def frustum_model_node(
-    scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, detector: Detector, name: str, color=(1.0, 0.8, 0.0)
+    scene: "slicer.vtkMRMLScene", pose_ras: np.ndarray, detector: Detector, name: str, color=(1.0, 0.8, 0.0), node=None
 ) -> "slicer.vtkMRMLModelNode":
     """Lines from the source to the detector corners plus the detector outline (RAS mm)."""
     pts = camera_to_ras_points(pose_ras, detector)
@@ -91,7 +96,7 @@ def frustum_model_node(
     poly = vtk.vtkPolyData()
     poly.SetPoints(points)
     poly.SetLines(lines)
-    node = scene.AddNewNodeByClass("vtkMRMLModelNode", name)
+    node = output_node(scene, "vtkMRMLModelNode", name, node)
     node.SetAndObservePolyData(poly)
     node.CreateDefaultDisplayNodes()
     node.GetDisplayNode().SetColor(*color)
@@ -132,16 +137,19 @@ def projected_segmentation_node(
     pose_centred: np.ndarray,
     detector: Detector,
     name: str,
+    node=None,
 ) -> "slicer.vtkMRMLSegmentationNode":
     """Segmentation on the detector plane (same grid as the DSA MAP node of this pose):
     one segment per ``{label value: (name, rgb)}``, the projection of that region."""
     proj = project_labels(labels, list(segments), pose_centred, detector)
     pose_ras = labels.centred_to_ras @ np.asarray(pose_centred, dtype=float)
     masks = {seg_name: (proj[n][None], color) for n, (seg_name, color) in enumerate(segments.values())}
-    return segmentation_from_masks(scene, masks, detector_ijk_to_ras(detector, pose_ras), name)
+    return segmentation_from_masks(scene, masks, detector_ijk_to_ras(detector, pose_ras), name, node=node)
 
 
-def result_table_node(scene: "slicer.vtkMRMLScene", rows: Sequence[Mapping[str, object]], name: str) -> "slicer.vtkMRMLTableNode":
+def result_table_node(
+    scene: "slicer.vtkMRMLScene", rows: Sequence[Mapping[str, object]], name: str, node=None
+) -> "slicer.vtkMRMLTableNode":
     """A table with one row per mapping; numeric columns are doubles, others strings.
     Columns appear in first-seen order; a missing value is NaN (numeric) or empty."""
     columns: list[str] = []
@@ -159,6 +167,6 @@ def result_table_node(scene: "slicer.vtkMRMLScene", rows: Sequence[Mapping[str, 
             else:
                 arr.InsertNextValue("" if v is None else str(v))
         table.AddColumn(arr)
-    node = scene.AddNewNodeByClass("vtkMRMLTableNode", name)
+    node = output_node(scene, "vtkMRMLTableNode", name, node)
     node.SetAndObserveTable(table)
     return node

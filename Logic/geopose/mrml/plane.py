@@ -19,7 +19,7 @@ import numpy as np
 import slicer
 
 from ..geometry.detector import AP_REORIENT, CArmAngles, Detector
-from .scene import matrix_to_vtk, sequences_logic
+from .scene import matrix_to_vtk, output_node, sequences_logic
 from .volumes import image_data_from_array
 
 __all__ = [
@@ -66,13 +66,13 @@ def _check_image(image: np.ndarray, detector: Detector) -> np.ndarray:
 
 
 def plane_volume_node(
-    scene: "slicer.vtkMRMLScene", image: np.ndarray, detector: Detector, pose_ras: np.ndarray, name: str
+    scene: "slicer.vtkMRMLScene", image: np.ndarray, detector: Detector, pose_ras: np.ndarray, name: str, node=None
 ) -> "slicer.vtkMRMLScalarVolumeNode":
-    """A single-slice scalar volume holding ``image (H, W)`` on its detector plane."""
+    """A single-slice scalar volume holding ``image (H, W)`` on its detector plane (``node``: updated in place)."""
     image = _check_image(image, detector)
     if image.ndim != 2:
         raise ValueError(f"a detector image is (H, W), got shape {image.shape}")
-    node = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", name)
+    node = output_node(scene, "vtkMRMLScalarVolumeNode", name, node)
     node.SetIJKToRASMatrix(matrix_to_vtk(detector_ijk_to_ras(detector, pose_ras)))
     node.SetAndObserveImageData(image_data_from_array(image[None]))
     node.CreateDefaultDisplayNodes()
@@ -87,14 +87,17 @@ def dsa_sequence_node(
     name: str,
     frame_time_s: float | None = None,
     angles: CArmAngles | None = None,
+    node=None,
 ) -> tuple["slicer.vtkMRMLSequenceNode", "slicer.vtkMRMLSequenceBrowserNode"]:
     """A DSA run ``frames (T, H, W)`` as a sequence of single-slice volumes on the detector
-    plane of ``pose_ras``, indexed by time (s, or frame number without a frame time), with a browser."""
+    plane of ``pose_ras``, indexed by time (s, or frame number without a frame time), with a browser.
+    An existing sequence ``node`` gets these frames instead of its own and keeps its browser."""
     frames = _check_image(frames, detector)
     if frames.ndim != 3 or frames.shape[0] < 1:
         raise ValueError(f"a DSA run is (T, H, W) with T >= 1, got shape {frames.shape}")
     ijk_to_ras = matrix_to_vtk(detector_ijk_to_ras(detector, pose_ras))
-    seq = scene.AddNewNodeByClass("vtkMRMLSequenceNode", name)
+    seq = output_node(scene, "vtkMRMLSequenceNode", name, node)
+    seq.RemoveAllDataNodes()
     seq.SetIndexName("time" if frame_time_s else "frame")
     seq.SetIndexUnit("s" if frame_time_s else "")
     seq.SetIndexType(seq.NumericIndex)
@@ -105,13 +108,15 @@ def dsa_sequence_node(
         node.SetAndObserveImageData(image_data_from_array(frame[None]))
         seq.SetDataNodeAtValue(node, f"{t * frame_time_s:.6g}" if frame_time_s else str(t))
     set_geometry_attributes(seq, detector, angles, frame_time_s)
-    browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", f"{name} browser")
-    browser.SetAndObserveMasterSequenceNodeID(seq.GetID())
     logic = sequences_logic(scene)
+    browser = logic.GetFirstBrowserNodeForSequenceNode(seq)
+    if browser is None:
+        browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", f"{seq.GetName()} browser")
+        browser.SetAndObserveMasterSequenceNodeID(seq.GetID())
     logic.UpdateProxyNodesFromSequences(browser)
     proxy = browser.GetProxyNode(seq)
     if proxy is not None:
-        proxy.SetName(name)
+        proxy.SetName(seq.GetName())
         proxy.CreateDefaultDisplayNodes()
     return seq, browser
 

@@ -15,7 +15,11 @@ import numpy as np
 import slicer
 import vtk
 
-__all__ = ["new_scene", "prepare_scene", "sequences_logic", "matrix_to_vtk", "matrix_from_vtk", "save_mrb", "load_mrb"]
+from ..errors import InputError
+
+__all__ = [
+    "new_scene", "prepare_scene", "sequences_logic", "matrix_to_vtk", "matrix_from_vtk", "save_mrb", "load_mrb", "output_node",
+]
 
 #: Colour table that label-map display nodes look up by default.
 _LABELS_COLOR_NODE_ID = "vtkMRMLColorTableNodeLabels"
@@ -69,6 +73,16 @@ def prepare_scene(scene: "slicer.vtkMRMLScene") -> "slicer.vtkMRMLScene":
 def new_scene() -> "slicer.vtkMRMLScene":
     """An empty scene prepared with :func:`prepare_scene`."""
     return prepare_scene(slicer.vtkMRMLScene())
+
+
+def output_node(scene: "slicer.vtkMRMLScene", class_name: str, name: str, node=None):
+    """The node an output goes into: ``node`` when given (chosen by the user or made by an
+    earlier run; it is updated in place and keeps its name), else a new ``class_name`` node ``name``."""
+    if node is None:
+        return scene.AddNewNodeByClass(class_name, name)
+    if not node.IsA(class_name):
+        raise InputError(f"output node {node.GetName()!r} is a {node.GetClassName()}, not a {class_name}: choose another output node")
+    return node
 
 
 def matrix_to_vtk(m: np.ndarray) -> vtk.vtkMatrix4x4:

@@ -15,7 +15,7 @@ import vtk
 from vtk.util import numpy_support
 
 from ..volume import Volume
-from .scene import matrix_from_vtk, matrix_to_vtk
+from .scene import matrix_from_vtk, matrix_to_vtk, output_node
 
 __all__ = [
     "volume_from_node",
@@ -134,14 +134,16 @@ def segmentation_from_masks(
     masks: Mapping[str, tuple[np.ndarray, tuple[float, float, float]]],
     ijk_to_ras: np.ndarray,
     name: str,
+    node=None,
 ) -> "slicer.vtkMRMLSegmentationNode":
     """A segmentation node with one binary-labelmap segment per ``{name: (mask [k, j, i], rgb 0..1)}``
-    on the grid ``ijk_to_ras`` (segments may overlap)."""
+    on the grid ``ijk_to_ras`` (segments may overlap); an existing ``node`` gets these segments instead of its own."""
     ijk_to_ras = np.asarray(ijk_to_ras, dtype=float)
     _check_orthogonal(ijk_to_ras)
-    node = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
+    node = output_node(scene, "vtkMRMLSegmentationNode", name, node)
     node.CreateDefaultDisplayNodes()
     seg = node.GetSegmentation()
+    seg.RemoveAllSegments()
     rep = slicer.vtkSegmentationConverter.GetBinaryLabelmapRepresentationName()
     seg.SetSourceRepresentationName(rep)
     for seg_name, (mask, color) in masks.items():

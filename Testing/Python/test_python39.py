@@ -1,0 +1,55 @@
+"""Slicer 5.8 runs Python 3.9 with pydicom 2.4.4: the torch-free registration and the DICOM writer
+run there (``.venv-py39``, built by ``make test`` from Testing/Python39/requirements.txt) and give
+the poses this environment's onnxruntime engine gives."""
+
+from __future__ import annotations
+
+import ast
+import json
+import re
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from geopose.cta import load_cta
+from geopose.dsa import read_dsa
+from geopose.geometry import poses as N
+from geopose.options import RegistrationOptions
+from geopose.phantom.cli import write_phantom
+from geopose.register import register_case
+from geopose.register.record import build_record
+
+REPO = Path(__file__).resolve().parents[2]
+PY39 = REPO / ".venv-py39" / "bin" / "python"
+CHECK = REPO / "Testing" / "Python39" / "check_library.py"
+REQUIREMENTS_39 = REPO / "Testing" / "Python39" / "requirements.txt"
+
+
+def _module_requirements() -> tuple[str, ...]:
+    tree = ast.parse((REPO / "GeoPoseModule" / "GeoPose.py").read_text())
+    return next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign) and getattr(n.targets[0], "id", "") == "REQUIREMENTS")
+
+
+def test_the_python39_environment_holds_the_module_requirements():
+    lines = [line.split("#")[0].strip() for line in REQUIREMENTS_39.read_text().splitlines()]
+    names = {re.split("[=>]=", line)[0] for line in lines if line}
+    assert {re.split(">=", r)[0] for r in _module_requirements()} <= names and "pydicom==2.4.4" in lines
+
+
+def test_torch_free_registration_and_dicom_writer_on_python39_with_pydicom_2_4(tmp_path):
+    if not PY39.is_file():
+        pytest.skip("no .venv-py39: `make test` builds it (python3.9 -m venv + Testing/Python39/requirements.txt)")
+    write_phantom(5003, tmp_path, spacing_mm=4.0, max_matrix_px=128)
+    run = subprocess.run([str(PY39), str(CHECK), str(tmp_path), str(REPO)], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-4000:]
+    out = json.loads(run.stdout.splitlines()[-1])
+    assert out["python"] == [3, 9] and out["pydicom"] == "2.4.4" and not out["torch_loaded"] and out["engine"] == "onnxruntime"
+    assert out["written_frames_equal"] and out["written_geometry_equal"]
+    runs = {key: read_dsa(tmp_path / f"dsa_{key}.dcm") for key in ("pa", "lat")}
+    want = build_record(register_case(load_cta(tmp_path / "cta.nii.gz"), runs, options=RegistrationOptions(backend="onnxruntime", iterations=0)), runs)
+    for key in runs:
+        got, ref = np.asarray(out["pose_centred"][key]), np.asarray(want["views"][key]["pose_centred"])
+        np.testing.assert_allclose(got[:3, 3], ref[:3, 3], atol=0.5)  # mm
+        assert np.degrees(N.rotation_angle_rad(got[:3, :3].T @ ref[:3, :3])) < 0.1
