@@ -20,15 +20,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from heldout import parse_heldout_args, publish  # puts Logic/ on sys.path
 
 from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.dsa.preprocess import bilateral, clip_intensities, minmax, preprocess_dsa  # noqa: E402
 from geopose.geometry import params_from_pose  # noqa: E402
-from geopose.nets import make_predictors  # noqa: E402
-from geopose.register import RegistrationOptions, prepare_case  # noqa: E402
+from geopose.nets import load_models  # noqa: E402
+from geopose.register import prepare_case  # noqa: E402
+from geopose.render.renderer import NumpyRenderer  # noqa: E402
 from geopose.register.calibration import calibrate, calibrated_init, render_model_view  # noqa: E402
 from geopose.register.case import TTO_PX_CPU, VIEW_KEYS  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
@@ -37,9 +37,9 @@ from geopose.resources import default_models_dir  # noqa: E402
 DEPTH_AXIS = 1
 
 
-def depth_mm(pose: torch.Tensor) -> float:
+def depth_mm(pose: np.ndarray) -> float:
     """``t_y`` (mm) of a camera-to-world pose ``(1, 4, 4)``."""
-    return float(params_from_pose(pose.double())[1][0, DEPTH_AXIS])
+    return float(params_from_pose(np.asarray(pose, dtype=np.float64))[1][DEPTH_AXIS])
 
 
 #: A milder clip of the MAP for the networks' input than CONVENTIONS 5's 25th-75th.
@@ -55,12 +55,12 @@ INPUTS = (
 )
 
 
-def map_chain(drr: torch.Tensor, mask: np.ndarray, smooth: bool = True) -> torch.Tensor:
+def map_chain(drr: np.ndarray, mask: np.ndarray, smooth: bool = True) -> np.ndarray:
     """A model-geometry image ``(1, 1, H, W)`` through the MAP's intensities: percentile clip
     over the masked columns, mask, bilateral on an 8-bit scale (``smooth``), min-max."""
-    clipped = clip_intensities(drr[0, 0].cpu().numpy(), mask) * mask
+    clipped = clip_intensities(drr[0, 0], mask) * mask
     eight_bit = clipped / max(float(clipped.max()), 1e-6) * 255.0
-    return torch.as_tensor(minmax(bilateral(eight_bit) if smooth else eight_bit))[None, None]
+    return minmax(bilateral(eight_bit) if smooth else eight_bit)[None, None]
 
 
 def _summary(name: str, errors: np.ndarray, truth: np.ndarray, estimate: np.ndarray) -> str:
@@ -71,23 +71,23 @@ def _summary(name: str, errors: np.ndarray, truth: np.ndarray, estimate: np.ndar
 
 def main() -> int:
     args, seeds = parse_heldout_args(__doc__.splitlines()[0], "5000-5019")
-    init, _ = make_predictors(default_models_dir(), backend="torch", device="cpu")
+    models = load_models(default_models_dir(), runtime="torch", device="cpu")
+    init = models.init
     rows, table = [], []
     t0 = time.perf_counter()
     for i, seed in enumerate(seeds):
         with tempfile.TemporaryDirectory() as tmp:
             case = phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm)
-        prep = prepare_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels,
-                            options=RegistrationOptions())
-        cal = calibrate(prep.drr, init)
+        prep = prepare_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels)
+        renderer = NumpyRenderer(prep.volume)
+        cal = calibrate(renderer, init, models.render_px)
         for key in VIEW_KEYS:
-            true = torch.as_tensor(case.true_poses[key], dtype=torch.float64)[None]
+            true = case.true_poses[key]
             lateral = key == "lat"
-            with torch.no_grad():
-                drr = render_model_view(prep.drr, true.float())
+            drr = render_model_view(renderer, true, models.render_px)
             mask = prep.views[key].model_mask
             loose = preprocess_dsa(case.runs[key], tto_px=TTO_PX_CPU, model_clip_percentiles=LOOSE_CLIP_PERCENTILES)
-            images = (prep.model_target(key), torch.as_tensor(loose.model_image)[None, None], drr, drr * torch.as_tensor(mask, dtype=drr.dtype),
+            images = (prep.model_target(key), loose.model_image[None, None], drr, drr * mask,
                       map_chain(drr, mask, smooth=False), map_chain(drr, mask))
             d = [depth_mm(true)] + [depth_mm(calibrated_init(x, lateral, init, cal).pose_native) for x in images]
             table.append(d)
@@ -96,7 +96,7 @@ def main() -> int:
     truth, *estimates = np.asarray(table).T
     lines = [
         f"Shipped Init (`{default_models_dir().name}`), calibrated, {len(table)} views of {len(seeds)} held-out phantoms "
-        f"at {args.spacing_mm:g} mm, torch {torch.__version__}, {platform.processor() or platform.machine()}, "
+        f"at {args.spacing_mm:g} mm, {platform.processor() or platform.machine()}, "
         f"{args.threads} threads, {time.perf_counter() - t0:.0f} s.",
         "",
         "| Init input | depth error mean (mm) | sd | mean abs | correlation with true depth |",

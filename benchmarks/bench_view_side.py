@@ -15,36 +15,37 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from heldout import parse_heldout_args, publish  # puts Logic/ on sys.path
 
 from geopose import contract as C  # noqa: E402
 from geopose.bench.cases import phantom_case  # noqa: E402
-from geopose.nets import make_predictors  # noqa: E402
+from geopose.nets import load_models  # noqa: E402
 from geopose.dsa import preprocess_dsa  # noqa: E402
 from geopose.register.case import TTO_PX_CPU  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
 
 
-def side_margins(init, target: torch.Tensor) -> tuple[float, float]:
+def side_margins(init, target: np.ndarray) -> tuple[float, float]:
     """LAT+ minus LAT- logit of the single image and of the mirror-averaged logits."""
-    _, _, single = init.predict(target, torch.tensor([True]), mirror=False)
-    _, _, mirrored = init.predict(target, torch.tensor([True]), mirror=True)
+    _, _, single = init.predict(target, True, mirror=False)
+    _, _, mirrored = init.predict(target, True, mirror=True)
     margin = lambda logits: float(logits[0, C.VIEW_LAT_PLUS] - logits[0, C.VIEW_LAT_MINUS])  # noqa: E731
     return margin(single), margin(mirrored)
 
 
 def main() -> int:
     args, seeds = parse_heldout_args(__doc__.splitlines()[0], "5000-5039")
-    init, _ = make_predictors(default_models_dir(), backend="torch", device="cpu")
+    init = load_models(default_models_dir(), runtime="torch", device="cpu").init
     rows, right = [], {"single": 0, "mirror": 0}
     t0 = time.perf_counter()
     for i, seed in enumerate(seeds):
         with tempfile.TemporaryDirectory() as tmp:
             case = phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm)
         run = case.runs["lat"]
-        target = torch.as_tensor(preprocess_dsa(run, tto_px=TTO_PX_CPU).model_image, dtype=torch.float32)[None, None]
+        target = preprocess_dsa(run, tto_px=TTO_PX_CPU).model_image[None, None].astype(np.float32)
         true_side = run.view_label
         single, mirror = side_margins(init, target)
         verdict = {}

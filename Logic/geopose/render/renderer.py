@@ -25,6 +25,10 @@ __all__ = ["ENGINES", "Renderer", "NumpyRenderer", "TorchRenderer", "make_render
 
 #: Rendering kernels.
 ENGINES = ("numpy", "torch")
+#: Largest voxel of the sampled level, in pixel footprints at the volume centre: the images
+#: compared (MAPs resampled with anti-aliasing, then bilateral-filtered; min-max DRRs for the
+#: networks) hold no detail at a pixel's own scale.
+VOXEL_PER_PIXEL = 1.5
 
 
 def coarse_detector(detector: Detector, render_px: int | None) -> Detector:
@@ -36,9 +40,12 @@ def coarse_detector(detector: Detector, render_px: int | None) -> Detector:
 
 
 class Renderer:
-    """Renders ``volume`` (see the module doc); subclasses supply :meth:`_render_level`."""
+    """Renders ``volume`` (see the module doc); subclasses supply :meth:`_render_level`.
+    ``voxel_per_pixel``: a render samples the coarsest level whose voxels are at most this
+    many of its pixels' footprints at the volume centre."""
 
     engine = ""
+    voxel_per_pixel = VOXEL_PER_PIXEL
 
     def __init__(self, volume: RenderVolume) -> None:
         self.volume = volume
@@ -54,7 +61,8 @@ class Renderer:
     def level_for_pose(self, pose: np.ndarray, detector: Detector) -> Level:
         """The level a render of ``pose`` (``(4, 4)`` or the first of a batch) on ``detector`` samples."""
         source_mm = float(np.linalg.norm(np.asarray(pose, dtype=np.float64).reshape(-1, 4, 4)[0, :3, 3]))
-        return self.volume.level_for(footprint_mm(min(detector.spacing_mm), detector.sdd_mm, max(source_mm, 1.0)))
+        pixel_mm = footprint_mm(min(detector.spacing_mm), detector.sdd_mm, max(source_mm, 1.0))
+        return self.volume.level_for(pixel_mm * self.voxel_per_pixel)
 
     def render(
         self,
