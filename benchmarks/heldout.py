@@ -17,12 +17,13 @@ from geopose.resources import default_models_dir  # noqa: E402
 
 
 def parse_heldout_args(description: str, default_seeds: str) -> tuple[argparse.Namespace, list[int]]:
-    """Parse ``--seeds --spacing-mm --threads --doc``, set torch's threads, and return the
+    """Parse ``--seeds --spacing-mm --iterations --threads --doc``, set torch's threads, and return the
     arguments with the sorted held-out seeds; exits with the remedy on a training seed."""
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--seeds", nargs="+", type=seed_range, default=[seed_range(default_seeds)],
                     help=f"ranges such as {default_seeds}")
     ap.add_argument("--spacing-mm", type=float, default=2.0, help="phantom voxel spacing (mm)")
+    ap.add_argument("--iterations", type=int, default=25, help="TTO steps, where a benchmark runs the TTO")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--doc", type=Path, default=None, help="Markdown file to write the tables to")
     args = ap.parse_args()

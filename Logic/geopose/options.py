@@ -63,7 +63,10 @@ class RegistrationOptions:
     #: Voxel size (mm) of the working copy of the CTA the renderers sample (None: the
     #: CTA's own, coarsened where that is finer than the images need).
     work_spacing_mm: float | None = None
-    #: Add the PA/lateral orthogonality term to the TTO objective (CONVENTIONS 5).
+    #: Register each view on its own (the published pipeline) instead of one patient pose
+    #: seen by both arms of the biplane system (their relative geometry from the DICOM angles).
+    independent_views: bool = False
+    #: Add the PA/lateral orthogonality term to the TTO objective (CONVENTIONS 5; independent views).
     biplanar: bool = False
 
     def __post_init__(self) -> None:
@@ -88,8 +91,9 @@ class RegistrationOptions:
             object.__setattr__(
                 self, "work_spacing_mm", L.check_range("work_spacing_mm", self.work_spacing_mm, L.WORK_SPACING_MM)
             )
-        if not isinstance(self.biplanar, bool):
-            raise InputError(f"biplanar must be True or False, got {self.biplanar!r}")
+        for name in ("independent_views", "biplanar"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"{name} must be True or False, got {getattr(self, name)!r}")
 
     def replace(self, **changes: Any) -> "RegistrationOptions":
         """A copy with ``changes`` (validated like a new one)."""

@@ -40,7 +40,8 @@ KIND_METADATA_KEY = "geopose_kind"
 
 class InitPredictor(Protocol):
     def predict(
-        self, image: np.ndarray, is_lateral: np.ndarray | bool | None = None, mirror: bool = True
+        self, image: np.ndarray, is_lateral: np.ndarray | bool | None = None, mirror: bool = True,
+        view: np.ndarray | int | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """image ``(B, 1, H, W)`` -> pose ``(B, 4, 4)``, view ``(B,)``, logits ``(B, 3)`` (see :class:`_Init`)."""
         ...
@@ -69,14 +70,16 @@ class _Init:
     image_shape: tuple[int, ...] | None = None
 
     def predict(
-        self, image: np.ndarray, is_lateral: np.ndarray | bool | None = None, mirror: bool = True
+        self, image: np.ndarray, is_lateral: np.ndarray | bool | None = None, mirror: bool = True,
+        view: np.ndarray | int | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Pose ``(B, 4, 4)``, view labels ``(B,)`` and view logits ``(B, 3)`` for a batch of images.
 
         ``is_lateral`` is the acquisition's PA/lateral metadata (None: the logits decide all
-        three views). With ``mirror`` the logits are averaged with those of the
-        column-mirrored images (:func:`~geopose.nets.decoding.mirror_averaged_logits`, one
-        pass of 2B images): the lateral side is then decided more reliably than by the
+        three views); ``view`` fixes the labels instead (e.g. the side from the acquisition
+        geometry; the logits are still returned). With ``mirror`` the logits are averaged with
+        those of the column-mirrored images (:func:`~geopose.nets.decoding.mirror_averaged_logits`,
+        one pass of 2B images): the lateral side is then decided more reliably than by the
         published single-image rule; poses are unaffected.
         """
         image = _images("image", image, self.image_shape)
@@ -84,7 +87,7 @@ class _Init:
         raw_all, logits = self._raw(np.concatenate((image, image[..., ::-1])) if mirror else image)
         if mirror:
             raw_all, logits = raw_all[:batch], mirror_averaged_logits(logits[:batch], logits[batch:])
-        view = select_view(logits, is_lateral)
+        view = select_view(logits, is_lateral) if view is None else view_labels(view, batch)
         return decode_init_pose(raw_all[np.arange(batch), view], view), view, logits
 
     def _raw(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

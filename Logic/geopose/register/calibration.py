@@ -14,6 +14,7 @@ from .. import contract as C
 from ..geometry.detector import Detector
 from ..geometry.poses import invert, isopose
 from ..images import normalize_minmax
+from ..nets.decoding import select_view
 from ..nets.predictors import InitPredictor
 from ..render.renderer import Renderer
 from .results import Calibration, InitEstimate
@@ -36,7 +37,12 @@ def calibrate(renderer: Renderer, init: InitPredictor, render_px: int) -> Calibr
     return Calibration(t_cal, predicted, t_cal @ invert(predicted), image)
 
 
-def calibrated_init(target: np.ndarray, is_lateral: bool, init: InitPredictor, calibration: Calibration) -> InitEstimate:
-    """Init on a preprocessed model-geometry target ``(1, 1, 256, 256)`` -> native pose."""
-    pose, view, logits = init.predict(target, is_lateral=bool(is_lateral))
-    return InitEstimate(calibration.to_native(pose[0]), pose[0], int(view[0]), logits[0])
+def calibrated_init(
+    target: np.ndarray, is_lateral: bool, init: InitPredictor, calibration: Calibration, view: int | None = None
+) -> InitEstimate:
+    """Init on a preprocessed model-geometry target ``(1, 1, 256, 256)`` -> native pose. The view
+    label is the network's (PA/lateral from ``is_lateral``, the side from the logits) unless
+    ``view`` fixes it (the biplane registration takes the side from the acquisition geometry)."""
+    pose, label, logits = init.predict(target, is_lateral=bool(is_lateral), view=view)
+    network_view = int(select_view(logits, bool(is_lateral))[0])
+    return InitEstimate(calibration.to_native(pose[0]), pose[0], int(label[0]), logits[0], network_view)

@@ -40,12 +40,14 @@ class Calibration:
 
 @dataclass
 class InitEstimate:
-    """Calibrated Init output for one DSA view: native and canonical pose, view label, logits ``(3,)``."""
+    """Calibrated Init output for one DSA view: native and canonical pose, the view label used,
+    the view logits ``(3,)`` and the label the network itself chose (PA/lateral from metadata)."""
 
     pose_native: np.ndarray
     pose_canonical: np.ndarray
     view: int
     logits: np.ndarray
+    network_view: int
 
 
 @dataclass

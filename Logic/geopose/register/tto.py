@@ -1,19 +1,32 @@
-"""Test-time optimisation with the GeoReg objective (paper section 2.3.3), in torch.
+"""Test-time optimisation of the GeoReg objective (paper section 2.3.3), in torch.
 
-Per view: ``w * (-mNCC(target, DRR)) + (1 - w) * GeneralizedDice(sigmoid(cranium
+Per view: ``w * (-mNCC(target, image)) + (1 - w) * GeneralizedDice(sigmoid(cranium
 channel), DSA mask > 0)``, summed over views (optionally plus the biplanar term).
-Parameters per view: Euler ZYX (rad) and translation / 200 (mm); NAdam with a
-OneCycle schedule. Coarse to fine: the first ``coarse_fraction`` of the steps
-render at half the image size (a coarser CTA level, a quarter of the rays), the
-rest at full size. Each view keeps the pose of best full-size mNCC seen, the start
-included. Poses in and out are numpy ``(4, 4)`` (centred CTA frame, mm); this is
-the one stage that needs PyTorch (gradients through the torch DRR kernel).
+``image`` is the DRR, by default sent through the target's own intensity clip (its
+percentiles over the DSA mask's columns, then masked: :class:`Objective`), so that a
+saturated MAP silhouette is compared with a saturated DRR silhouette.
+
+Two parameterisations:
+
+* one *patient pose* for both views (``rig`` given: the arms' poses ``A_v`` about the
+  isocentre, ``T_v = X @ A_v``; ``X`` moves by a rotation about the isocentre (rad) and a
+  shift of the isocentre (mm), learning rates in those units; :mod:`.biplane`);
+* per view, the paper's: Euler ZYX (rad) and translation / 200 (mm), OneCycle max 1e-2
+  (the published independent-views behaviour).
+
+NAdam with a OneCycle schedule. Coarse to fine: the first ``coarse_fraction`` of the steps
+render at half the image size (a coarser CTA level, a quarter of the rays), the rest at
+full size. The result is the pose of best full-size objective seen, the start included
+(per view for independent views, jointly for a patient pose; the paper's schedule keeps
+each view's best mNCC). Poses in and out are numpy
+``(4, 4)`` (centred CTA frame, mm); this is the one stage that needs PyTorch.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Mapping
 
 import numpy as np
 
@@ -21,9 +34,11 @@ from .. import contract as C
 from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
+from .biplane import patient_pose
 from .progress import Monitor
 
-__all__ = ["TTOView", "TTOSchedule", "TTOResult", "test_time_optimise", "biplanar_penalty"]
+__all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "Objective", "PAPER_OBJECTIVE", "TTOResult", "test_time_optimise",
+           "evaluate_objective", "biplanar_penalty"]
 
 #: The render channels the objective uses: the total density and the cranium.
 TTO_CHANNELS = ("total", "cranium")
@@ -31,9 +46,9 @@ TTO_CHANNELS = ("total", "cranium")
 
 @dataclass
 class TTOView:
-    """One view to optimise: target ``(h, w)`` (the preprocessed MAP at the acquisition SDD),
-    the DSA cranium mask of the same shape, the acquisition detector sampled on ``h x w``,
-    and the start pose ``(4, 4)``."""
+    """One view: target ``(h, w)`` (the preprocessed MAP at the acquisition SDD), the DSA
+    cranium mask of the same shape, the acquisition detector sampled on ``h x w``, and the
+    start pose ``(4, 4)``."""
 
     name: str
     target: np.ndarray
@@ -44,24 +59,48 @@ class TTOView:
 
 @dataclass(frozen=True)
 class TTOSchedule:
-    """Steps, peak learning rate (OneCycle, CONVENTIONS 5) and the share of steps at half size."""
+    """Steps, the share of them at half size, and the peak learning rates (OneCycle): for a
+    patient pose, of its rotation (rad) and isocentre shift (mm); ``paper``: the published
+    per-view schedule instead (max 1e-2 on Euler angles and translation / 200)."""
 
     iterations: int = C.TTO_ITERATIONS
-    max_lr: float = C.TTO_MAX_LR
     coarse_fraction: float = 0.4
+    rotation_lr_rad: float = 0.02
+    translation_lr_mm: float = 4.0
+    paper: bool = False
 
     def coarse_steps(self) -> int:
         return int(round(self.iterations * self.coarse_fraction))
 
 
+#: The paper's schedule, all steps at full size (independent views).
+PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True)
+
+
+@dataclass(frozen=True)
+class Objective:
+    """The GeoReg objective: ``ncc_weight`` on -mNCC, the rest on the silhouette Dice loss.
+    ``clip_drr``: compare the target with the DRR clipped like the target (its
+    ``clip_percentiles`` over the DSA mask's columns, then masked) instead of the raw DRR."""
+
+    ncc_weight: float = C.TTO_NCC_WEIGHT
+    clip_drr: bool = True
+    clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
+
+
+#: The paper's objective: raw DRR against the clipped MAP.
+PAPER_OBJECTIVE = Objective(clip_drr=False)
+
+
 @dataclass
 class TTOResult:
-    """Best pose, its mNCC and iteration per view; ``trace``: per iteration the loss and per view
-    the mNCC, Dice loss, image size and pose."""
+    """Best pose per view, its mNCC and iteration; the patient pose when one was optimised;
+    ``trace``: per iteration the loss, the image size and per view the mNCC, Dice loss and pose."""
 
     poses: dict[str, np.ndarray]
     best_mncc: dict[str, float]
     best_iteration: dict[str, int]
+    patient_pose: np.ndarray | None = None
     trace: list[dict] = field(default_factory=list)
 
 
@@ -80,59 +119,164 @@ def _half(view: TTOView) -> tuple[np.ndarray, np.ndarray, Detector]:
     return target, mask, det
 
 
+class _Images:
+    """Each view's target, mask, detector and DRR kernel at full and half size, and the objective."""
+
+    def __init__(self, renderer: TorchRenderer, views: list[TTOView], objective: Objective) -> None:
+        import torch
+
+        self.objective = objective
+        self.channels = renderer.channel_index(TTO_CHANNELS)
+        as_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=renderer.device)[None, None]  # noqa: E731
+        self.levels = {}
+        for v in views:
+            for size, (target, mask, det) in (("full", (v.target, v.mask, v.detector)), ("half", _half(v))):
+                drr = renderer.drr(renderer.level_for_pose(v.pose, det))
+                m = (as_t(mask) > 0).float()
+                columns = m[0, 0].amax(0) > 0
+                self.levels[v.name, size] = (as_t(target), m, columns, det, drr)
+
+    def loss(self, name: str, pose, size: str):
+        """(loss, mNCC, Dice loss) of view ``name`` at ``pose`` ``(1, 4, 4)`` (torch, differentiable)."""
+        import torch
+
+        from ..metrics.losses import generalized_dice_loss, mncc_similarity
+
+        target, mask, columns, det, drr = self.levels[name, size]
+        img = drr(pose, detector=det, channels=self.channels)
+        image = img[:, :1]
+        if self.objective.clip_drr:
+            with torch.no_grad():
+                support = image[0, 0][:, columns] if bool(columns.any()) else image[0, 0]
+                q = torch.tensor(self.objective.clip_percentiles, dtype=support.dtype, device=support.device) / 100.0
+                lo, hi = torch.quantile(support.flatten(), q)
+            image = (torch.minimum(torch.maximum(image, lo), hi) - lo) * mask
+        sim = mncc_similarity(target, image)
+        dice = generalized_dice_loss(torch.sigmoid(img[:, 1:2]), mask)
+        w = self.objective.ncc_weight
+        return w * (-sim) + (1 - w) * dice, sim, dice
+
+
+class _PatientParams:
+    """``T_v = X @ A_v`` with ``X = [[R(w) R0, p0 + v], [0, 1]]``: ``w`` (rad, axis-angle about the
+    isocentre, CTA frame) and ``v`` (mm, isocentre shift)."""
+
+    def __init__(self, X0: np.ndarray, rig: Mapping[str, np.ndarray], device) -> None:
+        import torch
+
+        self.X0 = torch.as_tensor(X0, dtype=torch.float64, device=device)
+        self.rig = {k: torch.as_tensor(A, dtype=torch.float64, device=device) for k, A in rig.items()}
+        self.w = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
+        self.v = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
+
+    def groups(self, schedule: TTOSchedule) -> list[dict]:
+        return [{"params": [self.w], "lr": schedule.rotation_lr_rad}, {"params": [self.v], "lr": schedule.translation_lr_mm}]
+
+    def patient(self):
+        import torch
+
+        from ..geometry.rigid import axis_angle_to_matrix
+
+        top = torch.cat((axis_angle_to_matrix(self.w) @ self.X0[:3, :3], (self.X0[:3, 3] + self.v)[:, None]), dim=1)
+        return torch.cat((top, self.X0[3:]), dim=0)
+
+    def poses(self) -> dict:
+        X = self.patient()
+        return {k: (X @ A)[None] for k, A in self.rig.items()}
+
+
+class _ViewParams:
+    """Per view, the paper's parameters: Euler ZYX (rad) and rotated-frame translation / 200 (mm)."""
+
+    def __init__(self, views: list[TTOView], device) -> None:
+        import torch
+
+        from ..geometry.rigid import params_from_pose
+
+        self.scale = C.TTO_TRANSLATION_SCALE_MM
+        self.params = {}
+        for v in views:
+            r, t = params_from_pose(torch.as_tensor(v.pose, dtype=torch.float64, device=device)[None])
+            self.params[v.name] = torch.cat((r, t / self.scale), dim=-1).clone().requires_grad_(True)
+
+    def groups(self, schedule: TTOSchedule) -> list[dict]:
+        return [{"params": list(self.params.values()), "lr": C.TTO_MAX_LR}]
+
+    def poses(self) -> dict:
+        from ..geometry.rigid import pose_from_params
+
+        return {k: pose_from_params(p[:, :3], p[:, 3:] * self.scale) for k, p in self.params.items()}
+
+
 def test_time_optimise(
     renderer: TorchRenderer,
     views: list[TTOView],
     schedule: TTOSchedule = TTOSchedule(),
     *,
+    objective: Objective = Objective(),
+    rig: Mapping[str, np.ndarray] | None = None,
     biplanar: bool = False,
     monitor: Monitor | None = None,
 ) -> TTOResult:
-    """Jointly optimise the poses of ``views`` through ``renderer``'s differentiable kernel."""
+    """Optimise the poses of ``views`` through ``renderer``'s differentiable kernel: one patient
+    pose when ``rig`` (``{view: A_v}``) is given (the views' start poses must be ``X @ A_v`` of one
+    ``X``), else each view's own (``schedule.paper`` for the published schedule)."""
     import torch
-
-    from ..geometry.rigid import params_from_pose, pose_from_params
-    from ..metrics.losses import generalized_dice_loss, mncc_similarity
 
     monitor = monitor or Monitor()
     n = schedule.iterations
     if n < 0:
         raise ValueError(f"iterations must be >= 0, got {n}")
     dev = renderer.device
-    channels = renderer.channel_index(TTO_CHANNELS)
-    as_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=dev)[None, None]  # noqa: E731
-    levels = {}
-    for v in views:
-        coarse_target, coarse_mask, coarse_det = _half(v)
-        for size, (target, mask, det) in (("full", (v.target, v.mask, v.detector)), ("half", (coarse_target, coarse_mask, coarse_det))):
-            drr = renderer.drr(renderer.level_for_pose(v.pose, det))
-            levels[v.name, size] = (as_t(target), (as_t(mask) > 0).float(), det, drr)
-
-    def objective(name: str, pose, size: str):
-        target, mask, det, drr = levels[name, size]
-        img = drr(pose, detector=det, channels=channels)
-        sim = mncc_similarity(target, img[:, :1])
-        dice = generalized_dice_loss(torch.sigmoid(img[:, 1:2]), mask)
-        return C.TTO_NCC_WEIGHT * (-sim) + (1 - C.TTO_NCC_WEIGHT) * dice, sim, dice
-
-    scale = C.TTO_TRANSLATION_SCALE_MM
-    params = []
-    for v in views:
-        r, t = params_from_pose(torch.as_tensor(v.pose, dtype=torch.float64, device=dev)[None])
-        params.append(torch.cat((r, t / scale), dim=-1).clone().requires_grad_(True))
-    best = {v.name: (-math.inf, v.pose.copy(), 0) for v in views}
+    images = _Images(renderer, views, objective)
+    joint = rig is not None
+    if joint:
+        X0 = patient_pose(views[0].pose, rig[views[0].name])
+        params = _PatientParams(X0, {v.name: rig[v.name] for v in views}, dev)
+    else:
+        params = _ViewParams(views, dev)
+    names = [v.name for v in views]
     coarse = schedule.coarse_steps() if n > 0 else 0
+    # best[...] = (objective loss, per-view mNCC, per-view pose, iteration); one entry for a patient pose
+    best: dict = {}
+
+    def consider(key: str, loss: float, scores: dict, poses: dict, it: int) -> None:
+        if key not in best or loss < best[key][0]:
+            best[key] = (loss, scores, poses, it)
+
+    def evaluate(size: str) -> tuple:
+        poses = params.poses()
+        losses, scores = {}, {}
+        rotations = {}
+        total = torch.zeros((), dtype=torch.float64, device=dev)
+        for name in names:
+            view_loss, sim, dice = images.loss(name, poses[name], size)
+            losses[name] = (float(view_loss.detach()), float(sim.detach()), float(dice.detach()))
+            total = total + view_loss
+            rotations[name] = poses[name][:, :3, :3]
+        if biplanar and len(names) == 2:
+            total = total + C.BIPLANAR_WEIGHT * biplanar_penalty(rotations[names[0]], rotations[names[1]]).sum()
+        return total, losses, {k: p.detach()[0].cpu().numpy() for k, p in poses.items()}
+
+    def record_best(losses: dict, poses: dict, it: int) -> None:
+        if joint:
+            consider("patient", sum(v[0] for v in losses.values()), {k: v[1] for k, v in losses.items()}, poses, it)
+        else:  # per view; the paper keeps the pose of best mNCC
+            for name in names:
+                key = -losses[name][1] if schedule.paper else losses[name][0]
+                consider(name, key, {name: losses[name][1]}, {name: poses[name]}, it)
+
+    result = TTOResult({}, {}, {})
     if coarse > 0:  # the start, scored at full size (the coarse steps are not compared with it)
         with torch.no_grad():
-            for v, p in zip(views, params):
-                _, sim, _ = objective(v.name, pose_from_params(p[:, :3], p[:, 3:] * scale), "full")
-                best[v.name] = (float(sim), v.pose.copy(), 0)
-    result = TTOResult({}, {}, {})
+            _, losses, poses = evaluate("full")
+        record_best(losses, poses, 0)
     optimiser = scheduler = None
     if n > 0:
-        optimiser = torch.optim.NAdam(params, lr=schedule.max_lr)
+        groups = params.groups(schedule)
+        optimiser = torch.optim.NAdam(groups, lr=groups[0]["lr"])
         scheduler = torch.optim.lr_scheduler.OneCycleLR(
-            optimiser, max_lr=schedule.max_lr, total_steps=n, pct_start=C.TTO_WARMUP_FRACTION,
+            optimiser, max_lr=[g["lr"] for g in groups], total_steps=n, pct_start=C.TTO_WARMUP_FRACTION,
             div_factor=C.TTO_DIV_FACTOR, cycle_momentum=False,
         )
     for it in range(n + 1):
@@ -140,29 +284,34 @@ def test_time_optimise(
         size = "half" if it < coarse else "full"
         monitor.step("tto", it / max(n, 1), f"iteration {it}/{n} ({size} size)")
         with torch.set_grad_enabled(not final):
-            loss = torch.zeros((), dtype=torch.float64, device=dev)
-            rotations = {}
-            entry: dict = {"iteration": it, "size": size, "views": {}}
-            for v, p in zip(views, params):
-                pose = pose_from_params(p[:, :3], p[:, 3:] * scale)
-                rotations[v.name] = pose[:, :3, :3]
-                view_loss, sim, dice = objective(v.name, pose, size)
-                loss = loss + view_loss
-                score = float(sim.detach())
-                pose_np = pose.detach()[0].cpu().numpy()
-                entry["views"][v.name] = {"mncc": score, "dice_loss": float(dice.detach()), "pose": pose_np.tolist()}
-                if size == "full" and score > best[v.name][0]:
-                    best[v.name] = (score, pose_np, it)
-            if biplanar and len(views) == 2:
-                loss = loss + C.BIPLANAR_WEIGHT * biplanar_penalty(rotations[views[0].name], rotations[views[1].name]).sum()
-            entry["loss"] = float(loss.detach())
-            result.trace.append(entry)
-            if not final:
-                optimiser.zero_grad()
-                loss.backward()
-                optimiser.step()
-                scheduler.step()
-    for name, (score, pose, it) in best.items():
-        result.poses[name], result.best_mncc[name], result.best_iteration[name] = pose, score, it
+            total, losses, poses = evaluate(size)
+        result.trace.append({
+            "iteration": it, "size": size, "loss": float(total.detach()),
+            "views": {k: {"mncc": losses[k][1], "dice_loss": losses[k][2], "pose": poses[k].tolist()} for k in names},
+        })
+        if size == "full":
+            record_best(losses, poses, it)
+        if not final:
+            optimiser.zero_grad()
+            total.backward()
+            optimiser.step()
+            scheduler.step()
+    for key, (_, scores, poses, it) in best.items():
+        for name, pose in poses.items():
+            result.poses[name], result.best_mncc[name], result.best_iteration[name] = pose, scores[name], it
+    if joint:
+        result.patient_pose = patient_pose(result.poses[names[0]], rig[names[0]])
     monitor.step("tto", 1.0, "done")
     return result
+
+
+def evaluate_objective(
+    renderer: TorchRenderer, views: list[TTOView], objective: Objective = Objective()
+) -> dict[str, float]:
+    """The objective of each view at its pose (full size, no gradients): ``{view: loss}``."""
+    import torch
+
+    images = _Images(renderer, views, objective)
+    with torch.no_grad():
+        return {v.name: float(images.loss(v.name, torch.as_tensor(v.pose, dtype=torch.float64, device=renderer.device)[None],
+                                          "full")[0]) for v in views}

@@ -1,0 +1,107 @@
+"""One patient pose seen by both arms of a biplane system (numpy).
+
+Each run's DICOM geometry (primary/secondary angle, SID, SOD) gives its C-arm pose
+``A_v`` about the system's isocentre (``pose_from_carm_angles``); the two arms share
+that isocentre, so one rigid *patient pose* ``X`` (isocentre frame -> centred CTA frame)
+places both: ``T_v = X @ A_v``. ``X = I`` is the DICOM-angle start (the isocentre at the
+CTA's centre). A single view fixes ``X`` only in its own image plane: its depth (along
+the central ray) and its two out-of-plane rotations are nearly unobservable. The other
+arm sees those in-plane, so :func:`fuse_patient_poses` combines per-view estimates of
+``X`` weighting each component by how well its view observes it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from ..dsa import DSARun
+from ..geometry.detector import AP_REORIENT
+from ..geometry.poses import axis_angle_to_matrix, invert, pose_from_carm_angles
+
+__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "axis_disagreement_mm",
+           "matrix_to_rotation_vector"]
+
+
+@dataclass(frozen=True)
+class Observability:
+    """Relative weight of what one view sees: translation along its central ray (depth) and
+    rotation about its two in-plane axes (out-of-plane), against 1 for the in-plane components."""
+
+    depth: float = 0.02
+    out_of_plane: float = 0.1
+
+
+def nominal_poses(runs: Mapping[str, DSARun]) -> dict[str, np.ndarray]:
+    """Each run's C-arm pose ``A_v`` ``(4, 4)`` about the isocentre, from its DICOM angles and distances."""
+    return {key: pose_from_carm_angles(run.angles) for key, run in runs.items()}
+
+
+def patient_pose(camera_pose: np.ndarray, nominal: np.ndarray) -> np.ndarray:
+    """The patient pose ``X`` a view's camera pose implies: ``T_v = X @ A_v``."""
+    return np.asarray(camera_pose, dtype=np.float64) @ invert(nominal)
+
+
+def view_poses(X: np.ndarray, nominal: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Both camera poses ``X @ A_v`` of one patient pose."""
+    return {key: np.asarray(X, dtype=np.float64) @ A for key, A in nominal.items()}
+
+
+def matrix_to_rotation_vector(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vector (rad) of a rotation ``(3, 3)`` (angle below pi)."""
+    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    angle = float(np.arccos(cos))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if angle < 1e-8:
+        return 0.5 * v
+    return v * (angle / (2.0 * np.sin(angle)))
+
+
+def _camera_axes(X: np.ndarray, nominal: np.ndarray) -> np.ndarray:
+    """Columns: the view's camera x, y (in-plane) and z (central ray) axes in the CTA frame."""
+    return (X @ nominal @ AP_REORIENT)[:3, :3]
+
+
+def fuse_patient_poses(
+    estimates: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray], observability: Observability = Observability()
+) -> np.ndarray:
+    """One patient pose from per-view estimates ``{view: X_v}``.
+
+    The isocentre's position (``X[:3, 3]``, CTA frame, mm) is the information-weighted mean
+    of the estimates, each view informing its in-plane directions fully and its depth with
+    weight ``observability.depth``; the rotation likewise about the first estimate (in-plane
+    rotation fully, out-of-plane with ``observability.out_of_plane``).
+    """
+    keys = list(estimates)
+    ref = np.asarray(estimates[keys[0]], dtype=np.float64)
+    info_t = np.zeros((3, 3))
+    info_r = np.zeros((3, 3))
+    sum_t = np.zeros(3)
+    sum_r = np.zeros(3)
+    for key in keys:
+        X = np.asarray(estimates[key], dtype=np.float64)
+        C = _camera_axes(X, nominal[key])
+        w_t = C @ np.diag([1.0, 1.0, observability.depth]) @ C.T
+        w_r = C @ np.diag([observability.out_of_plane, observability.out_of_plane, 1.0]) @ C.T
+        info_t += w_t
+        info_r += w_r
+        sum_t += w_t @ X[:3, 3]
+        sum_r += w_r @ matrix_to_rotation_vector(X[:3, :3] @ ref[:3, :3].T)
+    out = np.eye(4)
+    out[:3, :3] = axis_angle_to_matrix(np.linalg.solve(info_r, sum_r)) @ ref[:3, :3]
+    out[:3, 3] = np.linalg.solve(info_t, sum_t)
+    return out
+
+
+def axis_disagreement_mm(estimates: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray]) -> float:
+    """How far apart (mm) two views put the isocentre along the direction both see in-plane
+    (the common axis of their image planes: superior-inferior for PA + lateral)."""
+    (ka, Xa), (kb, Xb) = list(estimates.items())[:2]
+    za, zb = _camera_axes(Xa, nominal[ka])[:, 2], _camera_axes(Xb, nominal[kb])[:, 2]
+    common = np.cross(za, zb)
+    norm = np.linalg.norm(common)
+    if norm < 1e-6:  # parallel arms: no common in-plane axis beyond the image plane itself
+        return 0.0
+    return float(abs(np.dot(common / norm, np.asarray(Xa)[:3, 3] - np.asarray(Xb)[:3, 3])))
