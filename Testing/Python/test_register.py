@@ -84,7 +84,10 @@ def _perturb(T: np.ndarray, rot_deg=(3.0, -3.0, 2.0), trans_mm=(6.0, -5.0, 6.0))
 @pytest.fixture(scope="module")
 def phantom_case(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("case")
-    write_phantom(11, out, spacing_mm=2.0, max_matrix_px=512)
+    # Seed 12: since the DICOM angles keep their signs (docs/conventions.md, section 7), seed 11's PA
+    # (secondary +17.7 deg) has the GeoReg objective's own optimum 7 mm from the truth on its MAP
+    # (mNCC 0.656 at the TTO result, 0.631 at the true pose): no case for the gain checked below.
+    write_phantom(12, out, spacing_mm=2.0, max_matrix_px=512)
     return out
 
 
