@@ -21,8 +21,10 @@ from ..geometry.numpy_poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
-#: 2: ``view_logits`` are mirror-averaged (``view_logits_doc`` says so); 1: single-image logits.
-SCHEMA_VERSION = 2
+#: 3: ``carm`` angles keep DICOM's signs and views name their pixel axes (``patient_orientation``,
+#: docs/conventions.md section 7); 2: ``view_logits`` are mirror-averaged (``view_logits_doc`` says so);
+#: 1: single-image logits.
+SCHEMA_VERSION = 3
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "as_numpy", "build_record", "write_record", "library_versions", "patient_orientation"]
 
