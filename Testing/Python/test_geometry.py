@@ -126,10 +126,11 @@ def test_isopose_table(view):
 
 
 @pytest.mark.parametrize(
-    "alpha,view", [(0, C.VIEW_PA), (30, C.VIEW_PA), (-44, C.VIEW_PA), (-90, C.VIEW_LAT_PLUS), (-46, C.VIEW_LAT_PLUS),
-                   (90, C.VIEW_LAT_MINUS), (84, C.VIEW_LAT_MINUS), (-115, C.VIEW_LAT_PLUS)]
+    "alpha,view", [(0, C.VIEW_PA), (30, C.VIEW_PA), (-44, C.VIEW_PA), (-90, C.VIEW_LAT_MINUS), (-46, C.VIEW_LAT_MINUS),
+                   (90, C.VIEW_LAT_PLUS), (84, C.VIEW_LAT_PLUS), (-115, C.VIEW_LAT_MINUS)]
 )
 def test_view_rule(alpha, view):
+    """RAO (negative primary) is LAT-, LAO is LAT+ (docs/conventions.md, section 7)."""
     assert view_from_primary_angle(alpha) == view
 
 
@@ -144,14 +145,15 @@ def test_carm_angles_two_way():
         assert back.sod_mm == pytest.approx(720.0)
         src, _ = source_and_detector_points(T, Detector(8, 8, (1.0, 1.0), det_sdd))
         assert np.linalg.norm(src) == pytest.approx(720.0)
-    # Primary 0 / SOD 650 is the PA isopose; -90 is LAT+.
-    for a, view in ((0.0, C.VIEW_PA), (-90.0, C.VIEW_LAT_PLUS), (90.0, C.VIEW_LAT_MINUS)):
+    # Primary 0 / SOD 650 is the PA isopose; -90 (RAO) is LAT-, +90 (LAO) LAT+.
+    for a, view in ((0.0, C.VIEW_PA), (-90.0, C.VIEW_LAT_MINUS), (90.0, C.VIEW_LAT_PLUS)):
         T = pose_from_carm_angles(CArmAngles(a, 0.0, C.MODEL_SDD_MM, C.SOURCE_TO_ISOCENTER_MM))
         np.testing.assert_allclose(T, isopose(view), atol=1e-9)
-    # Cranial tilt (positive secondary) moves the detector towards +z (superior).
+    # Cranial tilt (positive secondary) tilts the real detector towards the head; the model
+    # source takes the detector's side, so it moves towards +z (superior).
     T = pose_from_carm_angles(CArmAngles(0.0, 20.0, 1020.0, 650.0))
-    _, pix = source_and_detector_points(T, Detector(2, 2, (1.0, 1.0), 1020.0))
-    assert pix.reshape(-1, 3)[:, 2].mean() > 100
+    src, pix = source_and_detector_points(T, Detector(2, 2, (1.0, 1.0), 1020.0))
+    assert src[2] > 100 and pix.reshape(-1, 3)[:, 2].mean() < -100
 
 
 def test_projection_by_hand_and_through_the_pixel():

@@ -24,7 +24,7 @@ from ..register.evaluate import load_truth
 from ..render import DRR
 from ..volume import Volume
 
-__all__ = ["BenchCase", "phantom_case", "headsq_case", "training_seeds", "seed_range", "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX"]
+__all__ = ["BenchCase", "phantom_case", "headsq_case", "load_headsq", "training_seeds", "seed_range", "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX"]
 
 #: The VTK headsq file stores raw values: HU = value - 1024.
 HEADSQ_HU_OFFSET = -1024.0
@@ -92,13 +92,19 @@ class _RealHead:
     centerlines: list[dict] = field(default_factory=list)
 
 
+def load_headsq(path: str | Path) -> Volume:
+    """The real head CT ``headsq`` (``quarter_sidecar.mhd``) in HU as a supine head CT: its raw
+    values shifted by ``HEADSQ_HU_OFFSET`` and its upside-down header turned by ``HEADSQ_HEADER_FIX``."""
+    raw = load_cta(path, hu_offset=HEADSQ_HU_OFFSET)
+    return Volume(raw.array, HEADSQ_HEADER_FIX @ raw.ijk_to_ras, dict(raw.metadata, header_fix="180 deg about A"))
+
+
 def headsq_case(path: str | Path, seed: int = 0) -> BenchCase:
     """The real head CT ``headsq`` (no contrast) with a PA + lateral run simulated from it
     at sampled clinical geometries: the runs hold motion residue and noise only, so the
     measurable results are pose errors, NCC and the cranium silhouette. The head is tilted
     on the angiography table as in the phantom world (``table_tilt``)."""
-    raw = load_cta(path, hu_offset=HEADSQ_HU_OFFSET)
-    cta = Volume(raw.array, HEADSQ_HEADER_FIX @ raw.ijk_to_ras, dict(raw.metadata, header_fix="180 deg about A"))
+    cta = load_headsq(path)
     cranium = cranium_mask_from_cta(cta)
     rng = np.random.default_rng([seed, 7])
     k, j, i = np.nonzero(cranium.array)

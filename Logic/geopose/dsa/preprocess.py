@@ -30,6 +30,7 @@ __all__ = [
     "minmax",
     "intensity_unit",
     "preprocess_dsa",
+    "vessel_image",
     "TTO_TARGET_PX",
 ]
 
@@ -226,7 +227,8 @@ class PreparedDSA:
     ``map`` / ``mask``: native-resolution attenuation-like MAP and its cranium mask.
     ``model_image`` / ``model_mask`` on ``model_detector`` (256 x 256, 1.2 mm, SDD 1020):
     the Init/Refine target. ``tto_image`` / ``tto_mask`` on ``tto_detector`` (the
-    acquisition SDD, downsampled): the test-time-optimisation target.
+    acquisition SDD, downsampled): the test-time-optimisation target; ``tto_vessels`` the
+    MAP's opacified vessels on the same detector (:func:`vessel_image`).
     """
 
     map: np.ndarray
@@ -237,8 +239,20 @@ class PreparedDSA:
     tto_image: np.ndarray
     tto_mask: np.ndarray
     tto_detector: Detector
+    tto_vessels: np.ndarray
     view_role: str
     view_label: int
+
+
+def vessel_image(image: np.ndarray, mask: np.ndarray, source: Detector, target: Detector) -> np.ndarray:
+    """The opacified vessels of a MAP ``(H, W)`` on ``target``: clipped to its
+    ``VESSEL_CLIP_PERCENTILES`` over the cranium ``mask`` (below: noise; above: a few
+    saturated pixels), masked, resampled (anti-aliased), min-max. Vessels are sharp where the
+    MAP's head silhouette, made by noise, is not; this is the image the TTO aligns them on."""
+    inside = np.asarray(mask) > 0
+    lo, hi = np.percentile(image[inside], C.VESSEL_CLIP_PERCENTILES)
+    vessels = (np.clip(image, lo, hi) - lo) * inside
+    return minmax(resample_to_detector(vessels.astype(np.float32), source, target))
 
 
 def _finish(clipped: np.ndarray, mask: np.ndarray, source: Detector, target: Detector, unit: float) -> tuple[np.ndarray, np.ndarray]:
@@ -283,4 +297,6 @@ def preprocess_dsa(
     scale = tto_px / max(h, w)
     tto = run.detector.resized(max(1, round(h * scale)), max(1, round(w * scale)))
     tto_image, tto_mask = _finish(clipped, mask, run.detector, tto, unit)
-    return PreparedDSA(image, mask, model_image, model_mask, model, tto_image, tto_mask, tto, run.view_role, run.view_label)
+    tto_vessels = vessel_image(image, mask, run.detector, tto)
+    return PreparedDSA(image, mask, model_image, model_mask, model, tto_image, tto_mask, tto, tto_vessels, run.view_role,
+                       run.view_label)

@@ -122,9 +122,11 @@ class Detector:
 
 
 def view_from_primary_angle(primary_deg: float) -> int:
-    """View label from DICOM PositionerPrimaryAngle ``alpha`` (deg): with ``s = -alpha``,
-    ``s > 45`` is LAT+ (2), ``s < -45`` is LAT- (0), otherwise PA (1)."""
-    s = -float(primary_deg)
+    """View label from DICOM PositionerPrimaryAngle ``alpha`` (deg): ``alpha > 45`` (LAO, detector
+    at the patient's left) is LAT+ (2), ``alpha < -45`` (RAO) is LAT- (0), otherwise PA (1): the
+    isopose nearest the pose of :func:`carm_pose_params`. The published rule negates ``alpha``,
+    which labels every lateral with the side its pixels are the mirror of (docs/conventions.md, 7)."""
+    s = float(primary_deg)
     if s > C.LATERAL_THRESHOLD_DEG:
         return C.VIEW_LAT_PLUS
     if s < -C.LATERAL_THRESHOLD_DEG:
@@ -158,11 +160,15 @@ class CArmAngles:
 def carm_pose_params(angles: CArmAngles) -> tuple[np.ndarray, np.ndarray]:
     """DICOM positioner angles -> GeoPose pose parameters about the isocentre (world origin).
 
-    ``r = (-primary, roll, -secondary)`` rad (Euler ZYX), ``t = (offset_x, SOD, offset_z)`` mm
-    (rotated frame). Primary 0 is the PA isopose, -90 is LAT+ and +90 is LAT-; the
-    detector is ``SID - SOD`` beyond the isocentre (the SID is ``Detector.sdd_mm``).
+    ``r = (primary, roll, secondary)`` rad (Euler ZYX), ``t = (offset_x, SOD, offset_z)`` mm
+    (rotated frame): the model source lies ``SOD`` from the isocentre in the direction the
+    angles give the detector (PS3.3 C.8.7.5.1.2), so the render shows the patient as the
+    stored XA pixels do, seen from the detector (docs/conventions.md, section 7). Primary 0
+    is the PA isopose, +90 (LAO) LAT+, -90 (RAO) LAT-; positive secondary (cranial) moves
+    the model source towards the head. The model detector is ``SID - SOD`` beyond the
+    isocentre (the SID is ``Detector.sdd_mm``).
     """
-    r = np.radians([-angles.primary_deg, angles.roll_deg, -angles.secondary_deg])
+    r = np.radians([angles.primary_deg, angles.roll_deg, angles.secondary_deg])
     t = np.array([angles.offset_mm[0], angles.sod_mm, angles.offset_mm[1]], dtype=np.float64)
     return r, t
 
@@ -171,8 +177,8 @@ def carm_angles_from_params(r: np.ndarray, t: np.ndarray, sid_mm: float) -> CArm
     """Inverse of :func:`carm_pose_params` for one pose's ``(r, t)`` (rad, mm)."""
     r, t = np.asarray(r, dtype=np.float64), np.asarray(t, dtype=np.float64)
     return CArmAngles(
-        primary_deg=-math.degrees(r[0]),
-        secondary_deg=-math.degrees(r[2]),
+        primary_deg=math.degrees(r[0]),
+        secondary_deg=math.degrees(r[2]),
         sid_mm=float(sid_mm),
         sod_mm=float(t[1]),
         roll_deg=math.degrees(r[1]),

@@ -191,8 +191,10 @@ def _moved(img: torch.Tensor, rng: np.random.Generator, amplitude: float) -> tor
     return F.grid_sample(img[None, None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0, 0]
 
 
-def _burn_text(frames: np.ndarray, rng: np.random.Generator, view: str, value: float) -> None:
-    """Burn a scanner-like annotation into every frame (in place)."""
+def _burn_text(frames: np.ndarray, rng: np.random.Generator, view: str, primary_deg: float, value: float) -> None:
+    """Burn a scanner-like annotation into every frame (in place). The side marker tells the truth
+    (docs/conventions.md, section 7): in a PA an "R" on the patient's right (the first columns); in a
+    lateral the side of the detector ("R" for RAO, negative primary; "L" for LAO) at the last columns."""
     t, h, w = frames.shape
     size = max(10, h // 40)
     font = ImageFont.load_default(size=size)
@@ -202,7 +204,10 @@ def _burn_text(frames: np.ndarray, rng: np.random.Generator, view: str, value: f
     x0, y0 = int(0.04 * w), int(0.04 * h)
     for n, line in enumerate(lines):
         draw.text((x0, y0 + n * int(1.3 * size)), line, fill=255, font=font)
-    draw.text((int(0.9 * w), int(0.5 * h)), "L" if view == LAT_ROLE else "R", fill=255, font=font)
+    if view == LAT_ROLE:
+        draw.text((int(0.9 * w), int(0.5 * h)), "R" if primary_deg < 0 else "L", fill=255, font=font)
+    else:
+        draw.text((x0, int(0.5 * h)), "R", fill=255, font=font)
     frames[:, np.asarray(layer) > 127] = value
 
 
@@ -283,7 +288,7 @@ def simulate_dsa(
     scale = 0.75 * STORED_MAX / max(float(torch.quantile(signal.amax(0)[::4, ::4].flatten(), 0.999)), 1e-6)
     offset = 0.06 * STORED_MAX
     att = torch.where(coll, frames * scale + offset, torch.zeros_like(frames)).clamp(0, STORED_MAX).round().numpy()
-    _burn_text(att, rng, acquisition.view_role, STORED_MAX)
+    _burn_text(att, rng, acquisition.view_role, acquisition.angles.primary_deg, STORED_MAX)
     run = DSARun.from_attenuation(
         att, det_out, acquisition.angles, acquisition.frame_time_ms,
         {"source": "geopose.phantom", "seed": subject.seed, "injection": injection},

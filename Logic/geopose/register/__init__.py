@@ -12,8 +12,10 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "pipeline": ("NO_TORCH_TTO_NOTE", "register_case", "resolve_engine", "score_view", "tto_views"),
         "progress": ("ConsoleProgress", "Monitor", "RegistrationCancelled"),
         "quality": ("Quality", "assess"),
-        "refine": ("greedy_refine",),
+        "refine": ("greedy_refine", "greedy_refine_biplane"),
         "results": ("Calibration", "CaseRegistration", "InitEstimate", "Proposal", "RefineTrace", "ViewOutcome"),
-        "tto": ("TTOResult", "TTOSchedule", "TTOView", "biplanar_penalty", "test_time_optimise"),
+        "tto": ("PAPER_SCHEDULE", "TTOResult", "TTOSchedule", "TTOView", "biplanar_penalty", "test_time_optimise"),
+        "objective": ("Objective", "PAPER_OBJECTIVE", "objective_value"),
+        "biplane": ("Observability", "fuse_patient_poses", "nominal_poses", "patient_pose", "view_poses"),
     },
 )

@@ -12,6 +12,15 @@ Read top to bottom, :func:`register_case` is the whole method (paper section 2.3
    (``tto.py``; needs PyTorch, skipped with a note without it);
 6. ``score``: final mNCC, silhouette Dice and the quality flag per view (``quality.py``).
 
+By default the two runs are one biplane acquisition: one patient pose ``X`` places both
+C-arms (``T_v = X @ A_v``, ``A_v`` from each run's DICOM geometry; ``biplane.py``). Init's
+per-view estimates are fused into ``X`` by what each view observes, Refine's proposals
+likewise, and the TTO optimises ``X`` against both views; it starts from whichever of the
+DICOM-angle pose, Init and Refine has the lowest objective (``objective.py``), so the
+result is never worse, by the objective, than the acquisition's own geometry.
+``independent_views=True`` runs the published pipeline: each view on its own, the paper's
+objective and schedule.
+
 Both engines run the same stages: ``backend="torch"`` renders with the torch kernel and
 runs the torch networks, ``"onnxruntime"`` renders with the numpy kernel and runs the
 shipped ONNX graphs; only the kernel and the network runtime differ. Poses between
@@ -23,10 +32,12 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
+from dataclasses import replace
 from typing import Iterator, Mapping
 
 import numpy as np
 
+from .. import contract as C
 from ..dsa import DSARun, PreparedDSA
 from ..errors import InputError
 from ..geometry.poses import invert, rotation_angle_rad
@@ -35,13 +46,15 @@ from ..nets.predictors import ModelSet, load_models, resolve_torch_device
 from ..options import RegistrationOptions
 from ..render.renderer import Renderer, TorchRenderer, make_renderer
 from ..volume import Volume
+from .biplane import axis_disagreement_mm, fuse_patient_poses, nominal_poses, patient_pose, view_poses
 from .calibration import calibrate, calibrated_init
 from .case import TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, PreparedCase, prepare_case, silhouette_dice
+from .objective import PAPER_OBJECTIVE, objective_value
 from .progress import CancelCheck, Monitor, ProgressCallback
-from .quality import Quality, assess
-from .refine import greedy_refine
-from .results import CaseRegistration, InitEstimate, RefineTrace, ViewOutcome
-from .tto import TTOResult, TTOSchedule, TTOView, test_time_optimise
+from .quality import VIEW_DISAGREEMENT_MM, Quality, assess
+from .refine import greedy_refine, greedy_refine_biplane
+from .results import CaseRegistration, InitEstimate, Registration, ViewOutcome
+from .tto import PAPER_SCHEDULE, TTOResult, TTOSchedule, TTOView, test_time_optimise
 
 __all__ = [
     "Engine", "NO_TORCH_TTO_NOTE", "resolve_engine", "register_case", "score_view", "torch_available", "torch_renderer_for",
@@ -129,7 +142,8 @@ def _timed(times: dict[str, float], name: str, engine: Engine) -> Iterator[None]
 
 def tto_views(views: Mapping[str, PreparedDSA], poses: Mapping[str, np.ndarray]) -> list[TTOView]:
     """Both preprocessed views set up for :func:`test_time_optimise`, starting from ``poses``."""
-    return [TTOView(k, views[k].tto_image, views[k].tto_mask, views[k].tto_detector, poses[k]) for k in VIEW_KEYS]
+    return [TTOView(k, views[k].tto_image, views[k].tto_mask, views[k].tto_vessels, views[k].tto_detector, poses[k])
+            for k in VIEW_KEYS]
 
 
 def torch_renderer_for(renderer: Renderer) -> TorchRenderer | None:
@@ -145,6 +159,19 @@ def score_view(renderer: Renderer, pose: np.ndarray, prepared: PreparedDSA) -> t
     and the DSA cranium mask), both in the TTO geometry (acquisition SDD)."""
     image = renderer.render(pose, prepared.tto_detector, ("total", "cranium"))
     return mncc(prepared.tto_image, image[0]), silhouette_dice(image[1], prepared.tto_mask)
+
+
+def _consistency_doubts(key: str, init: InitEstimate, label: int, registration: Registration) -> tuple[str, ...]:
+    """The failed consistency checks of one view, worded for its quality flag."""
+    doubts = []
+    if init.network_view != label:
+        doubts.append(f"the network reads this view as {C.VIEW_NAMES[init.network_view]} but its acquisition angle says "
+                      f"{C.VIEW_NAMES[label]}: check the runs' angles (docs/conventions.md section 7)")
+    apart = registration.checks.get("view_disagreement_mm", 0.0)
+    if apart > VIEW_DISAGREEMENT_MM:
+        doubts.append(f"the two views place the patient {apart:.0f} mm apart along the axis both see: did the patient move "
+                      "between the runs, or are they not one biplane pair?")
+    return tuple(doubts)
 
 
 def _stage_agreement(learned: np.ndarray, final: np.ndarray) -> tuple[float, float]:
@@ -199,29 +226,61 @@ def register_case(
         monitor.step("calibration", 0.0, "rendering the PA calibration DRR")
         calibration = calibrate(renderer, model_set.init, render_px)
 
-    # 3. Calibrated Init per view.
+    # 3. Calibrated Init per view. One patient pose: the lateral side from the acquisition
+    #    angles, the views' estimates fused by what each observes.
+    joint = not options.independent_views
+    rig = nominal_poses(dsa)
+    labels = {key: case.views[key].view_label for key in VIEW_KEYS}
     inits: dict[str, InitEstimate] = {}
     with _timed(times, "init", engine):
         for i, key in enumerate(VIEW_KEYS):
             monitor.step("init", i / 2, f"Init {key.upper()}")
-            inits[key] = calibrated_init(case.model_target(key), key == "lat", model_set.init, calibration)
+            inits[key] = calibrated_init(case.model_target(key), key == "lat", model_set.init, calibration,
+                                         view=labels[key] if joint else None)
+    registration = Registration("biplane-rigid" if joint else "independent views", rig)
+    if joint:
+        implied = {key: patient_pose(inits[key].pose_native, rig[key]) for key in VIEW_KEYS}
+        X_init = fuse_patient_poses(implied, rig)
+        init_poses = view_poses(X_init, rig)
+        registration.checks = {"view_disagreement_mm": axis_disagreement_mm(implied, rig)}
+    else:
+        init_poses = {key: inits[key].pose_native for key in VIEW_KEYS}
 
-    # 4. Similarity-gated greedy refinement per view.
-    refined: dict[str, RefineTrace] = {}
+    # 4. Similarity-gated greedy refinement (of the patient pose, or per view).
     with _timed(times, "refine", engine):
-        for key in VIEW_KEYS:
-            refined[key] = greedy_refine(renderer, case.model_target(key), inits[key].pose_native, inits[key].view,
-                                         model_set.refine, render_px, options.refine_steps, monitor)
+        targets = {key: case.model_target(key) for key in VIEW_KEYS}
+        if joint:
+            refined = greedy_refine_biplane(renderer, targets, X_init, rig, labels, model_set.refine, render_px,
+                                            options.refine_steps, monitor=monitor)
+        else:
+            refined = {key: greedy_refine(renderer, targets[key], init_poses[key], inits[key].view, model_set.refine,
+                                          render_px, options.refine_steps, monitor) for key in VIEW_KEYS}
 
-    # 5. Test-time optimisation of both views (needs PyTorch).
+    # 5. The TTO's start: the best by the objective of the DICOM-angle pose, Init and Refine
+    #    (one patient pose; never worse than the acquisition's own geometry); then the TTO
+    #    (needs PyTorch).
     finals = {key: refined[key].pose for key in VIEW_KEYS}
     tto_result: TTOResult | None = None
     with _timed(times, "tto", engine):
+        if joint:
+            candidates = {"DICOM angles": np.eye(4), "Init": X_init, "Refine": patient_pose(refined["pa"].pose, rig["pa"])}
+            registration.starts = {
+                name: sum(objective_value(renderer, X @ rig[k], case.views[k]).loss for k in VIEW_KEYS)
+                for name, X in candidates.items()
+            }
+            registration.chosen_start = min(registration.starts, key=registration.starts.get)
+            registration.patient_pose = candidates[registration.chosen_start]
+            finals = view_poses(registration.patient_pose, rig)
         if options.iterations > 0 and tto_renderer is None:
             notes.append(NO_TORCH_TTO_NOTE)
             monitor.step("tto", 1.0, NO_TORCH_TTO_NOTE)
-        elif options.iterations > 0:
+        elif options.iterations > 0 and joint:
             tto_result = test_time_optimise(tto_renderer, tto_views(case.views, finals), TTOSchedule(options.iterations),
+                                            rig=rig, monitor=monitor)
+            finals, registration.patient_pose = dict(tto_result.poses), tto_result.patient_pose
+        elif options.iterations > 0:
+            schedule = replace(PAPER_SCHEDULE, iterations=options.iterations)
+            tto_result = test_time_optimise(tto_renderer, tto_views(case.views, finals), schedule, objective=PAPER_OBJECTIVE,
                                             biplanar=options.biplanar, monitor=monitor)
             finals = dict(tto_result.poses)
 
@@ -230,9 +289,11 @@ def register_case(
     with _timed(times, "score", engine):
         for key in VIEW_KEYS:
             score, dice = score_view(renderer, finals[key], case.views[key])
-            quality: Quality = assess(score, dice, *_stage_agreement(refined[key].pose, finals[key]))
-            outcomes[key] = ViewOutcome(key, case.views[key], inits[key], refined[key], finals[key], score, dice, quality)
+            quality: Quality = assess(score, dice, *_stage_agreement(refined[key].pose, finals[key]),
+                                      doubts=_consistency_doubts(key, inits[key], labels[key], registration))
+            outcomes[key] = ViewOutcome(key, case.views[key], inits[key], init_poses[key], refined[key], finals[key], score,
+                                        dice, quality)
     times["total"] = time.perf_counter() - t_start
     monitor.step("done", 1.0, "registration finished" + (" (" + notes[0] + ")" if notes else ""))
     return CaseRegistration(cta, case.labels_source, calibration, outcomes, tto_result, times, options,
-                            engine.describe(options, case), renderer, notes)
+                            engine.describe(options, case), registration, renderer, notes)

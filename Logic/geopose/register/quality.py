@@ -4,9 +4,12 @@ Rule (thresholds named below; set on phantom runs, provisional for real data):
 
 * ``failed`` when the final mNCC is below ``MNCC_FAILED`` or the silhouette Dice
   (projected CTA cranium vs DSA cranium mask) is below ``DICE_FAILED``;
-* ``doubtful`` when mNCC < ``MNCC_OK``, Dice < ``DICE_OK``, or the final pose
+* ``doubtful`` when mNCC < ``MNCC_OK``, Dice < ``DICE_OK``, the final pose
   moved more than ``AGREEMENT_DEG`` / ``AGREEMENT_MM`` away from the learned
-  estimate (Init + Refine), i.e. the stages disagree;
+  estimate (Init + Refine), i.e. the stages disagree, or a consistency check of the
+  case failed (the pipeline passes its reasons: the network's lateral side against the
+  acquisition angle's, two views placing the patient more than ``VIEW_DISAGREEMENT_MM``
+  apart along the axis both see);
 * ``ok`` otherwise.
 """
 
@@ -21,6 +24,7 @@ DICE_FAILED: Final = 0.6
 DICE_OK: Final = 0.85
 AGREEMENT_DEG: Final = 6.0
 AGREEMENT_MM: Final = 20.0
+VIEW_DISAGREEMENT_MM: Final = 20.0
 
 
 @dataclass(frozen=True)
@@ -32,9 +36,11 @@ class Quality:
         return {"flag": self.flag, "reasons": list(self.reasons)}
 
 
-def assess(mncc: float, silhouette_dice: float, stage_rotation_deg: float, stage_translation_mm: float) -> Quality:
-    """Apply the rule above to one view's numbers."""
-    failed, doubtful = [], []
+def assess(
+    mncc: float, silhouette_dice: float, stage_rotation_deg: float, stage_translation_mm: float, doubts: tuple[str, ...] = ()
+) -> Quality:
+    """Apply the rule above to one view's numbers (``doubts``: failed consistency checks, worded)."""
+    failed, doubtful = [], list(doubts)
     if mncc < MNCC_FAILED:
         failed.append(f"final mNCC {mncc:.2f} < {MNCC_FAILED}")
     elif mncc < MNCC_OK:

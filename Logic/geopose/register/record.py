@@ -15,17 +15,25 @@ import numpy as np
 from .. import __version__
 from .. import contract as C
 from ..dsa import DSARun
-from ..geometry.detector import carm_angles_from_params
+from ..geometry.detector import AP_REORIENT, carm_angles_from_params
 from ..geometry.frames import pose_to_patient
-from ..geometry.poses import params_from_pose
+from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
-#: 3: ``engine`` (backend, renderer, device, render sizes, CTA levels) and ``notes``; options of
-#: ``geopose.options``. 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
+#: 3: ``engine`` (backend, renderer, device, render sizes, CTA levels), ``notes``, the options of
+#: ``geopose.options``; ``carm`` angles keep DICOM's signs and views name their pixel axes
+#: (``patient_orientation``, docs/conventions.md section 7). 2: ``view_logits`` are
+#: mirror-averaged; 1: single-image logits.
 SCHEMA_VERSION = 3
 
-__all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "write_record", "library_versions"]
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "write_record", "library_versions", "patient_orientation"]
+
+#: A pixel axis is named by every patient axis it makes at most about 67.5 deg with (cosine >= 0.38),
+#: the nearest first, as DICOM PatientOrientation (0020,0020) does ("L", "LP", ...).
+ORIENTATION_MIN_COSINE = 0.38
+#: Letters of the patient's RAS axes: (negative, positive) direction.
+_AXIS_LETTERS = (("L", "R"), ("P", "A"), ("F", "H"))
 
 
 def _m(pose: np.ndarray) -> list:
@@ -62,6 +70,19 @@ def _pose_entry(case: CaseRegistration, pose: Any) -> dict:
     }
 
 
+def patient_orientation(pose: np.ndarray) -> list[str]:
+    """DICOM PatientOrientation of a view's pixels for a camera-to-world pose (world axes RAS,
+    e.g. the centred CTA frame): the patient direction of increasing column, then of increasing
+    row. A PA is ``["L", "F"]``, an RAO lateral ``["A", "F"]``, an LAO lateral ``["P", "F"]``
+    (docs/conventions.md, section 7)."""
+    m = np.asarray(pose, dtype=np.float64)[:3, :3] @ AP_REORIENT[:3, :3]
+    out = []
+    for axis in (-m[:, 0], -m[:, 1]):  # columns grow towards camera -x, rows towards camera -y
+        order = np.argsort(-np.abs(axis))
+        out.append("".join(_AXIS_LETTERS[a][int(axis[a] > 0)] for a in order if abs(axis[a]) >= ORIENTATION_MIN_COSINE))
+    return out
+
+
 def _view_entry(case: CaseRegistration, v: ViewOutcome, run: DSARun) -> dict:
     r, t = params_from_pose(v.final_pose)
     angles = carm_angles_from_params(r, t, sid_mm=run.detector.sdd_mm)
@@ -76,6 +97,11 @@ def _view_entry(case: CaseRegistration, v: ViewOutcome, run: DSARun) -> dict:
         "translation_mm": t.tolist(),
         "carm": asdict(angles),
         "carm_doc": "equivalent positioner angles (deg) and distances (mm) about the centred CTA frame's origin",
+        "patient_orientation": patient_orientation(v.final_pose),
+        "patient_orientation_from_angles": patient_orientation(pose_from_carm_angles(run.angles)),
+        "patient_orientation_doc": "patient direction of increasing column, then of increasing row (DICOM PatientOrientation "
+        "letters), of the registered pose and of the pose the run's positioner angles imply (docs/conventions.md, section 7); "
+        "a disagreement means the image is mirrored against its angles or the registration picked the other side",
         "acquisition": {
             "primary_deg": run.angles.primary_deg,
             "secondary_deg": run.angles.secondary_deg,

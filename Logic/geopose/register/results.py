@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from ..render.renderer import Renderer
     from .tto import TTOResult
 
-__all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "ViewOutcome", "CaseRegistration"]
+__all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "ViewOutcome", "Registration", "CaseRegistration"]
 
 
 @dataclass
@@ -74,11 +74,13 @@ class RefineTrace:
 
 @dataclass
 class ViewOutcome:
-    """Everything one view went through."""
+    """Everything one view went through. ``init_pose`` is the pose after the Init stage: the
+    view's own calibrated Init, or, registering one patient pose, the fused one."""
 
     key: str
     prepared: PreparedDSA
     init: InitEstimate
+    init_pose: np.ndarray
     refine: RefineTrace
     final_pose: np.ndarray
     final_mncc: float
@@ -87,7 +89,22 @@ class ViewOutcome:
 
     @property
     def stage_poses(self) -> dict[str, np.ndarray]:
-        return {"init": self.init.pose_native, "refine": self.refine.pose, "final": self.final_pose}
+        return {"init": self.init_pose, "refine": self.refine.pose, "final": self.final_pose}
+
+
+@dataclass
+class Registration:
+    """How the case was registered: ``mode`` ``biplane-rigid`` (one patient pose ``X``, the camera
+    poses ``X @ A_v``; ``rig`` holds the ``A_v`` from the DICOM angles) or ``independent views``;
+    the candidate starts of the TTO with their objective and the one ``chosen``; the consistency
+    ``checks`` of the two views."""
+
+    mode: str
+    rig: dict[str, np.ndarray] = field(default_factory=dict)
+    patient_pose: np.ndarray | None = None
+    starts: dict[str, float] = field(default_factory=dict)
+    chosen_start: str = ""
+    checks: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -105,5 +122,6 @@ class CaseRegistration:
     runtimes_s: dict[str, float]
     options: RegistrationOptions
     engine: dict
+    registration: Registration
     renderer: "Renderer" = field(repr=False)
     notes: list[str] = field(default_factory=list)

@@ -3,8 +3,9 @@
 Per view: ``w * (-mNCC(target, image)) + (1 - w) * GeneralizedDice(sigmoid(cranium
 channel), DSA mask > 0)``, summed over views (optionally plus the biplanar term).
 ``image`` is the DRR, by default sent through the target's own intensity clip (its
-percentiles over the DSA mask's columns, then masked: :class:`Objective`), so that a
-saturated MAP silhouette is compared with a saturated DRR silhouette.
+percentiles over the DSA mask's columns, then masked: :class:`.objective.Objective`, whose
+numpy score is the same objective without gradients), so that a saturated MAP silhouette
+is compared with a saturated DRR silhouette.
 
 Two parameterisations:
 
@@ -35,24 +36,25 @@ from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
 from .biplane import patient_pose
+from .objective import Objective, combine
 from .progress import Monitor
 
-__all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "Objective", "PAPER_OBJECTIVE", "TTOResult", "test_time_optimise",
-           "evaluate_objective", "biplanar_penalty"]
+__all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "test_time_optimise", "biplanar_penalty"]
 
-#: The render channels the objective uses: the total density and the cranium.
-TTO_CHANNELS = ("total", "cranium")
+#: The render channels the objective uses: the total density, the cranium and the vessels.
+TTO_CHANNELS = ("total", "cranium", "vessels")
 
 
 @dataclass
 class TTOView:
     """One view: target ``(h, w)`` (the preprocessed MAP at the acquisition SDD), the DSA
-    cranium mask of the same shape, the acquisition detector sampled on ``h x w``, and the
-    start pose ``(4, 4)``."""
+    cranium mask and the MAP's vessel image of the same shape, the acquisition detector
+    sampled on ``h x w``, and the start pose ``(4, 4)``."""
 
     name: str
     target: np.ndarray
     mask: np.ndarray
+    vessels: np.ndarray
     detector: Detector
     pose: np.ndarray
 
@@ -77,21 +79,6 @@ class TTOSchedule:
 PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True)
 
 
-@dataclass(frozen=True)
-class Objective:
-    """The GeoReg objective: ``ncc_weight`` on -mNCC, the rest on the silhouette Dice loss.
-    ``clip_drr``: compare the target with the DRR clipped like the target (its
-    ``clip_percentiles`` over the DSA mask's columns, then masked) instead of the raw DRR."""
-
-    ncc_weight: float = C.TTO_NCC_WEIGHT
-    clip_drr: bool = True
-    clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
-
-
-#: The paper's objective: raw DRR against the clipped MAP.
-PAPER_OBJECTIVE = Objective(clip_drr=False)
-
-
 @dataclass
 class TTOResult:
     """Best pose per view, its mNCC and iteration; the patient pose when one was optimised;
@@ -111,12 +98,12 @@ def biplanar_penalty(R_pa, R_lat):
     return (rotation_angle_rad(R_lat.transpose(-1, -2) @ R_pa) - math.pi / 2).abs()
 
 
-def _half(view: TTOView) -> tuple[np.ndarray, np.ndarray, Detector]:
-    """The view's target, mask and detector at half the size (same field of view)."""
+def _half(view: TTOView) -> tuple[np.ndarray, np.ndarray, np.ndarray, Detector]:
+    """The view's target, mask, vessel image and detector at half the size (same field of view)."""
     det = view.detector.resized(max(16, view.detector.rows // 2), max(16, view.detector.cols // 2))
-    target = resize_bilinear(view.target[None].astype(np.float32), det.shape)[0]
+    target, vessels = resize_bilinear(np.stack((view.target, view.vessels)).astype(np.float32), det.shape)
     mask = resize_bilinear((view.mask > 0).astype(np.float32)[None], det.shape)[0] > 0.5
-    return target, mask, det
+    return target, mask, vessels, det
 
 
 class _Images:
@@ -129,20 +116,28 @@ class _Images:
         self.channels = renderer.channel_index(TTO_CHANNELS)
         as_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=renderer.device)[None, None]  # noqa: E731
         self.levels = {}
+        self.vessel_term = {}
         for v in views:
-            for size, (target, mask, det) in (("full", (v.target, v.mask, v.detector)), ("half", _half(v))):
+            for size, (target, mask, vessels, det) in (("full", (v.target, v.mask, v.vessels, v.detector)), ("half", _half(v))):
                 drr = renderer.drr(renderer.level_for_pose(v.pose, det))
                 m = (as_t(mask) > 0).float()
                 columns = m[0, 0].amax(0) > 0
-                self.levels[v.name, size] = (as_t(target), m, columns, det, drr)
+                self.levels[v.name, size] = (as_t(target), m, columns, as_t(vessels), det, drr)
+            # The vessel term only where the CTA has vessels in this view (its channel is not empty).
+            with torch.no_grad():
+                _, _, _, _, det, drr = self.levels[v.name, "full"]
+                start = torch.as_tensor(v.pose, dtype=torch.float64, device=renderer.device)[None]
+                self.vessel_term[v.name] = objective.vessel_weight > 0 and bool(
+                    drr(start, detector=det, channels=(self.channels[2],)).amax() > 0)
 
     def loss(self, name: str, pose, size: str):
-        """(loss, mNCC, Dice loss) of view ``name`` at ``pose`` ``(1, 4, 4)`` (torch, differentiable)."""
+        """(loss, mNCC, Dice loss, vessel NCC or None) of view ``name`` at ``pose`` ``(1, 4, 4)``
+        (torch, differentiable; :func:`.objective.combine` weighs the terms)."""
         import torch
 
-        from ..metrics.losses import generalized_dice_loss, mncc_similarity
+        from ..metrics.losses import generalized_dice_loss, mncc_similarity, ncc_similarity
 
-        target, mask, columns, det, drr = self.levels[name, size]
+        target, mask, columns, vessels, det, drr = self.levels[name, size]
         img = drr(pose, detector=det, channels=self.channels)
         image = img[:, :1]
         if self.objective.clip_drr:
@@ -153,8 +148,8 @@ class _Images:
             image = (torch.minimum(torch.maximum(image, lo), hi) - lo) * mask
         sim = mncc_similarity(target, image)
         dice = generalized_dice_loss(torch.sigmoid(img[:, 1:2]), mask)
-        w = self.objective.ncc_weight
-        return w * (-sim) + (1 - w) * dice, sim, dice
+        vessel = ncc_similarity(vessels, img[:, 2:3]) if self.vessel_term[name] else None
+        return combine(self.objective, sim, dice, vessel), sim, dice, vessel
 
 
 class _PatientParams:
@@ -250,8 +245,9 @@ def test_time_optimise(
         rotations = {}
         total = torch.zeros((), dtype=torch.float64, device=dev)
         for name in names:
-            view_loss, sim, dice = images.loss(name, poses[name], size)
-            losses[name] = (float(view_loss.detach()), float(sim.detach()), float(dice.detach()))
+            view_loss, sim, dice, vessel = images.loss(name, poses[name], size)
+            losses[name] = (float(view_loss.detach()), float(sim.detach()), float(dice.detach()),
+                            None if vessel is None else float(vessel.detach()))
             total = total + view_loss
             rotations[name] = poses[name][:, :3, :3]
         if biplanar and len(names) == 2:
@@ -287,7 +283,8 @@ def test_time_optimise(
             total, losses, poses = evaluate(size)
         result.trace.append({
             "iteration": it, "size": size, "loss": float(total.detach()),
-            "views": {k: {"mncc": losses[k][1], "dice_loss": losses[k][2], "pose": poses[k].tolist()} for k in names},
+            "views": {k: {"mncc": losses[k][1], "dice_loss": losses[k][2], "vessel_ncc": losses[k][3], "pose": poses[k].tolist()}
+                      for k in names},
         })
         if size == "full":
             record_best(losses, poses, it)
@@ -304,14 +301,3 @@ def test_time_optimise(
     monitor.step("tto", 1.0, "done")
     return result
 
-
-def evaluate_objective(
-    renderer: TorchRenderer, views: list[TTOView], objective: Objective = Objective()
-) -> dict[str, float]:
-    """The objective of each view at its pose (full size, no gradients): ``{view: loss}``."""
-    import torch
-
-    images = _Images(renderer, views, objective)
-    with torch.no_grad():
-        return {v.name: float(images.loss(v.name, torch.as_tensor(v.pose, dtype=torch.float64, device=renderer.device)[None],
-                                          "full")[0]) for v in views}
