@@ -17,7 +17,8 @@ slicer = pytest.importorskip("slicer", reason="needs the slicer-core wheel (Slic
 
 from geopose import contract as C  # noqa: E402
 from geopose import mrml  # noqa: E402
-from geopose.dsa import DSAInputError, DSARun  # noqa: E402
+from geopose.dsa import DSARun  # noqa: E402
+from geopose.errors import InputError  # noqa: E402
 from geopose.geometry import CArmAngles, Detector, pose_from_carm_angles  # noqa: E402
 from test_mrml_adapters import _cta, _pose  # noqa: E402
 
@@ -127,7 +128,7 @@ def test_dsa_run_from_node_uses_attributes_and_overrides(module):
         f = slicer.vtkMRMLScalarVolumeNode()
         f.SetAndObserveImageData(mrml.volumes.image_data_from_array(run.frames[n][None]))
         bare.SetDataNodeAtValue(f, str(n))
-    with pytest.raises(DSAInputError, match="Geometry overrides"):
+    with pytest.raises(InputError, match="Geometry overrides"):
         logic.dsaRunFromNode(bare)
     geo = {"primary_deg": 0.0, "secondary_deg": 0.0, "sid_mm": 1000.0, "sod_mm": 650.0, "pixel_spacing_mm": (0.8, 0.8)}
     assert logic.dsaRunFromNode(bare, geo).detector == DET

@@ -16,7 +16,8 @@ import SimpleITK as sitk
 from .. import contract as C
 from ..geometry.detector import Detector
 from ..nets.preprocess import normalize_minmax
-from .run import DSAInputError, DSARun
+from ..errors import InputError
+from .run import DSARun
 
 __all__ = [
     "PreparedDSA",
@@ -43,7 +44,7 @@ def temporal_map(frames: np.ndarray) -> np.ndarray:
     """Maximum intensity over time: ``(T, H, W)`` -> ``(H, W)`` float32."""
     frames = np.asarray(frames)
     if frames.ndim != 3 or frames.shape[0] < 1:
-        raise DSAInputError(f"temporal_map needs (T, H, W) frames, got shape {frames.shape}")
+        raise InputError(f"temporal_map needs (T, H, W) frames, got shape {frames.shape}")
     return frames.max(axis=0).astype(np.float32)
 
 
@@ -62,9 +63,9 @@ def dsa_cranium_mask(image: np.ndarray) -> np.ndarray:
     """
     image = np.asarray(image, dtype=np.float32)
     if image.ndim != 2:
-        raise DSAInputError(f"dsa_cranium_mask needs a 2D MAP, got shape {image.shape}")
+        raise InputError(f"dsa_cranium_mask needs a 2D MAP, got shape {image.shape}")
     if image.max() <= image.min():
-        raise DSAInputError("the MAP is constant: no head to mask; check the run or supply a mask")
+        raise InputError("the MAP is constant: no head to mask; check the run or supply a mask")
     otsu = sitk.OtsuThreshold(sitk.GetImageFromArray(image), 0, 1)
     return _largest_component_filled(sitk.GetArrayFromImage(otsu) > 0)
 
@@ -98,10 +99,10 @@ def clip_intensities(
     image = np.asarray(image, dtype=np.float32)
     support = image != 0 if support is None else np.asarray(support) > 0
     if support.shape != image.shape:
-        raise DSAInputError(f"support mask {support.shape} does not match the image {image.shape}")
+        raise InputError(f"support mask {support.shape} does not match the image {image.shape}")
     columns = support.any(axis=0)
     if not columns.any():
-        raise DSAInputError("no non-empty column to take intensity percentiles from: the mask is empty")
+        raise InputError("no non-empty column to take intensity percentiles from: the mask is empty")
     lo, hi = np.percentile(image[:, columns], percentiles)
     clipped = np.clip(image, lo, hi)
     return clipped - clipped.min()
@@ -151,7 +152,7 @@ def resample_to_detector(image: np.ndarray, source: Detector, target: Detector) 
     """
     image = np.asarray(image, dtype=np.float32)
     if image.shape != source.shape:
-        raise DSAInputError(f"image {image.shape} does not match the source detector {source.shape}")
+        raise InputError(f"image {image.shape} does not match the source detector {source.shape}")
     src_rc = source.camera_to_pixel(target.camera_points())
     ratio = (  # target pixel size projected onto the source plane, in source pixels
         target.spacing_mm[0] * source.sdd_mm / (target.sdd_mm * source.spacing_mm[0]),
@@ -249,9 +250,9 @@ def preprocess_dsa(
     else:
         mask = (np.asarray(mask) > 0).astype(np.uint8)
         if mask.shape != image.shape:
-            raise DSAInputError(f"the given mask is {mask.shape} but the run's frames are {image.shape}")
+            raise InputError(f"the given mask is {mask.shape} but the run's frames are {image.shape}")
         if not mask.any():
-            raise DSAInputError("the given mask is empty: supply a mask of the head or let the run's MAP define it")
+            raise InputError("the given mask is empty: supply a mask of the head or let the run's MAP define it")
     clipped = clip_intensities(image, mask)
     unit = intensity_unit(run)
     model = Detector.model()
