@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
 from geopose import contract as C  # noqa: E402
 from geopose.phantom.cli import write_phantom  # noqa: E402
 from geopose.register.cli import register_files  # noqa: E402
-from geopose.register.pipeline import RegistrationOptions  # noqa: E402
+from geopose.options import RegistrationOptions  # noqa: E402
 
 #: The paper's H100 runtimes (CONVENTIONS section 7), for comparison.
 PAPER_MS = {"calibration + init": 21.8, "refine": 147.0, "tto": 2000.0}

@@ -14,7 +14,7 @@ from .cta import load_cta, save_volume
 from .phantom.cli import write_phantom
 from .phantom.labels import vessel_mask
 from .register.cli import print_summary, register_files
-from .register.results import RegistrationOptions
+from .options import RegistrationOptions
 
 DEMO_SEED = 20260
 
@@ -39,9 +39,9 @@ def run(args: argparse.Namespace) -> int:
     save_volume(labels.like(vessel_mask(labels.array).astype("uint8")), case / "vessels.nii.gz")
     print("[2/2] registering the CTA to the PA + lateral DSA pair (vessel segmentation: the phantom's arteries)")
     record = register_files(
-        case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", out, backend=args.backend,
+        case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", out,
         segmentation=case / "vessels.nii.gz",
-        options=RegistrationOptions(iterations=args.iterations, device=args.device),
+        options=RegistrationOptions(backend=args.backend, iterations=args.iterations, device=args.device),
     )
     print_summary(record, out)
     return 0

@@ -39,7 +39,9 @@ from geopose.nets import (
     read_model_header,
     save_model,
 )
+from geopose.errors import InputError
 from geopose.nets.backend import OnnxInitPredictor, OnnxRefinePredictor
+from geopose.nets.manifest import verify_models
 from geopose.nets.checkpoint import (
     published_manifest_path,
     import_checkpoint,
@@ -260,7 +262,7 @@ def test_load_model_rejects_foreign_files(tmp_path):
     torch.save({"a": torch.zeros(2)}, plain)
     with pytest.raises(ValueError, match="not a GeoPose model file"):
         load_model(plain)
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(InputError, match="does not exist"):
         load_model(tmp_path / "missing.pt")
 
 
@@ -361,7 +363,7 @@ def test_non_checkpoints_are_refused(tmp_path):
     torch.save({"state_dict": {"encoder.weight": torch.zeros(3)}}, other)
     with pytest.raises(ValueError, match="neither a GeoPose-Init"):
         import_checkpoint(other, tmp_path / "o.pt")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(InputError, match="does not exist"):
         import_checkpoint(tmp_path / "absent.ckpt", tmp_path / "o.pt")
     good = fake_lightning_checkpoint(tmp_path / "run.ckpt", small_init(), tmp_path / "m")
     with pytest.raises(ValueError, match="must be a .pt file"):
@@ -421,18 +423,22 @@ def test_make_predictors_both_backends_agree(tmp_path):
     save_model(small_refine(), tmp_path / "b.pt")
     image = torch.rand(2, 1, 256, 256)
     results = {}
+    files = verify_models(tmp_path, allow_unverified=True)  # no manifest: explicitly unverified
+    assert files == {"init": tmp_path / "a.pt", "refine": tmp_path / "b.pt"}
     for backend in ("torch", "onnxruntime"):
-        init, refine = make_predictors(tmp_path, backend=backend)
+        init, refine = make_predictors(files, backend=backend)
         pose, view, _ = init.predict(image, torch.tensor([True, False]))
         results[backend] = (pose, view, refine.predict_residual(image, image.flip(-1), view))
     assert torch.equal(results["torch"][1], results["onnxruntime"][1])
     assert torch.allclose(results["torch"][0][:, :3, :3], results["onnxruntime"][0][:, :3, :3], atol=1e-4)
     assert torch.allclose(results["torch"][2], results["onnxruntime"][2], atol=1e-4)
     with pytest.raises(ValueError, match="backend"):
-        make_predictors(tmp_path, backend="tensorrt")
+        make_predictors(files, backend="tensorrt")
+    with pytest.raises(InputError, match="has no manifest.json.*--allow-unverified-models"):
+        verify_models(tmp_path)
     (tmp_path / "b.pt").unlink()
-    with pytest.raises(FileNotFoundError, match="no refine model"):
-        make_predictors(tmp_path)
+    with pytest.raises(InputError, match="no refine model"):
+        verify_models(tmp_path, allow_unverified=True)
 
 
 def test_cli_reports_bad_checkpoint_without_traceback(tmp_path, monkeypatch, capsys):

@@ -20,12 +20,13 @@ from .. import __version__
 from .. import contract as C
 from ..dsa import check_clip_percentiles, model_clip_arg
 from ..nets import make_predictors
-from ..nets.model_io import model_files
+from ..nets.manifest import verify_models
 from ..register import resolve_device
 from ..resources import default_models_dir
 from .cases import headsq_case, phantom_case, training_seeds
 from .report import convergence_figure, markdown, summarise
 from .run import BenchSettings, evaluate_case, row_names
+from ..errors import InputError
 
 #: First held-out phantom seed (training populations use small seeds; checked at run time).
 DEFAULT_SEED_START = 5000
@@ -44,7 +45,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--long-iterations", type=int, default=400, help="long native TTO budget (0: skip)")
     p.add_argument("--spacing-mm", type=float, default=1.0, help="phantom voxel size (mm)")
     p.add_argument("--headsq", help="the real head CT headsq (quarter_sidecar.mhd) for a transfer run")
-    p.add_argument("--models", help="model folder (default: the shipped models)")
+    p.add_argument("--models", help="model folder with its manifest.json (default: the shipped models)")
+    p.add_argument("--allow-unverified-models", action="store_true",
+                   help="use a --models folder without manifest.json (its files are not checksum-verified)")
     p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
     p.add_argument("--tto-px", type=int, help="TTO image size (default: 256 on CUDA, 128 on CPU)")
@@ -62,7 +65,7 @@ def _load_or_run(path: Path, compute) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     if args.subjects < 1:
-        raise ValueError(f"--subjects must be at least 1, got {args.subjects}")
+        raise InputError(f"--subjects must be at least 1, got {args.subjects}")
     out = Path(args.out)
     (out / "cases").mkdir(parents=True, exist_ok=True)
     models_dir = Path(args.models) if args.models else default_models_dir()
@@ -71,9 +74,10 @@ def run(args: argparse.Namespace) -> int:
     if manifest.is_file():
         overlap = sorted(set(seeds) & training_seeds(manifest))
         if overlap:
-            raise ValueError(f"seeds {overlap[:5]} were used to train these models: choose --seed-start beyond them")
+            raise InputError(f"seeds {overlap[:5]} were used to train these models: choose --seed-start beyond them")
     device = resolve_device(args.device)
-    init, refine = make_predictors(model_files(models_dir), backend=args.backend, device=device)
+    files = verify_models(models_dir, allow_unverified=args.allow_unverified_models)
+    init, refine = make_predictors(files, backend=args.backend, device=device)
     settings = BenchSettings(args.iterations, args.long_iterations, device=str(device), tto_px=args.tto_px,
                              model_clip_percentiles=check_clip_percentiles(args.model_clip_percentiles))
     n_long = args.subjects if args.long_subjects is None else args.long_subjects

@@ -191,7 +191,7 @@ def read_dicom_series(folder: Path, series_uid: str | None) -> tuple[np.ndarray,
 
     planes = np.concatenate([decode_frames(read_dataset(f), f.name, check)[0] for f, _ in headers])
     ijk_to_lps = np.eye(4)
-    notes: dict = {"slice_geometry": {"slices": len(headers), "median_gap_mm": step}}
+    notes: dict = {"slice_geometry": {"slices": len(headers), "median_gap_mm": float(step)}}
     if even and not tilted:
         ijk_to_lps[:3, :3] = np.stack([row * spacing[1], col * spacing[0], normal * step], axis=1)
         ijk_to_lps[:3, 3] = positions[0]
@@ -207,7 +207,7 @@ def read_dicom_series(folder: Path, series_uid: str | None) -> tuple[np.ndarray,
         reason=", ".join(r for r, on in (("gantry tilt", tilted), ("uneven slice positions", not even)) if on),
         gantry_tilt_deg=round(tilt_deg, 3),
         slice_gaps_mm=[round(float(g), 4) for g in np.diff(depths)],
-        slice_spacing_mm=dz,
+        slice_spacing_mm=float(dz),
         method="planes along the slice normal, bilinear in-plane shift of each slice's offset, linear between the two nearest "
                "slices; uncovered voxels = the series minimum",
     )

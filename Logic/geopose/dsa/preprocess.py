@@ -16,6 +16,7 @@ import SimpleITK as sitk
 from .. import contract as C
 from ..geometry.detector import Detector
 from ..nets.preprocess import normalize_minmax
+from ..options import check_clip_percentiles
 from ..errors import InputError
 from .run import DSARun
 
@@ -68,18 +69,6 @@ def dsa_cranium_mask(image: np.ndarray) -> np.ndarray:
         raise InputError("the MAP is constant: no head to mask; check the run or supply a mask")
     otsu = sitk.OtsuThreshold(sitk.GetImageFromArray(image), 0, 1)
     return _largest_component_filled(sitk.GetArrayFromImage(otsu) > 0)
-
-
-def check_clip_percentiles(percentiles) -> tuple[float, float]:
-    """``(lo, hi)`` with ``0 <= lo < hi <= 100`` as floats, or a :class:`ValueError` naming the remedy."""
-    try:
-        lo, hi = (float(p) for p in percentiles)
-    except (TypeError, ValueError):
-        raise ValueError(f"clip percentiles must be two numbers (lo, hi), got {percentiles!r}") from None
-    if not 0.0 <= lo < hi <= 100.0:
-        raise ValueError(f"clip percentiles ({lo:g}, {hi:g}) must satisfy 0 <= lo < hi <= 100, e.g. (2, 98) or the "
-                         f"default {C.MAP_CLIP_PERCENTILES}")
-    return lo, hi
 
 
 def clip_intensities(

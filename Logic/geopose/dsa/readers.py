@@ -45,15 +45,15 @@ from ..errors import InputError
 from ..geometry.detector import CArmAngles, Detector
 from ..imagefiles import IMAGE_EXTENSIONS, check_image_file, image_extension
 from ..jsonio import read_json
-from .run import GEOMETRY_KEYS, GEOMETRY_SOURCES, REQUIRED_GEOMETRY_KEYS, DSARun, check_frames_shape, check_geometry, cli_hint
+from .run import (
+    GEOMETRY_KEYS, GEOMETRY_SOURCES, PHOTOMETRIC, REQUIRED_GEOMETRY_KEYS, DSARun, check_frames_shape, check_geometry, cli_hint,
+)
 
-__all__ = ["read_dsa", "run_from_geometry", "sidecar_path", "NIFTI_EXTENSIONS", "SIDECAR_KEYS", "PHOTOMETRIC"]
+__all__ = ["read_dsa", "run_from_geometry", "sidecar_path", "NIFTI_EXTENSIONS", "SIDECAR_KEYS"]
 
 NIFTI_EXTENSIONS = IMAGE_EXTENSIONS
 #: JSON sidecar keys: the geometry keys plus the photometric interpretation of the stored frames.
 SIDECAR_KEYS = GEOMETRY_KEYS + ("photometric_interpretation",)
-#: Photometric interpretations of a greyscale run.
-PHOTOMETRIC = ("MONOCHROME1", "MONOCHROME2")
 #: Largest angle difference (deg) tolerated between single-frame files of one run.
 ANGLE_TOLERANCE_DEG = 0.5
 #: A MONOCHROME1 run "looks like MONOCHROME2" when its border is brighter than its centre (as

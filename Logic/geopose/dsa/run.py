@@ -19,7 +19,6 @@ key                    DICOM source                     meaning
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
@@ -35,6 +34,7 @@ __all__ = [
     "GEOMETRY_KEYS",
     "REQUIRED_GEOMETRY_KEYS",
     "GEOMETRY_SOURCES",
+    "PHOTOMETRIC",
     "check_frames_shape",
     "check_geometry",
     "cli_hint",
@@ -45,6 +45,9 @@ __all__ = [
 
 PA_ROLE = "PA"
 LAT_ROLE = "LAT"
+
+#: Photometric interpretations of a greyscale run.
+PHOTOMETRIC = ("MONOCHROME1", "MONOCHROME2")
 
 REQUIRED_GEOMETRY_KEYS = ("primary_deg", "secondary_deg", "sid_mm", "sod_mm", "pixel_spacing_mm")
 GEOMETRY_KEYS = REQUIRED_GEOMETRY_KEYS + ("principal_offset_mm", "frame_time_ms")

@@ -24,7 +24,7 @@ import torch
 
 from ..geometry import pose_from_carm_angles
 from ..nets import make_predictors
-from ..nets.model_io import model_files
+from ..nets.manifest import verify_models
 from ..phantom import labels as L
 from ..phantom import make_subject
 from ..phantom.dsa import sample_biplane, simulate_dsa
@@ -68,7 +68,7 @@ def build_case(seed: int = 3, spacing_mm: float = 2.0, matrix_px: int = 320):
     rng = np.random.default_rng(seed)
     acqs, iso = sample_biplane(rng, subject)
     sims = {key: simulate_dsa(subject, a, a.pose(iso), rng, max_matrix_px=matrix_px) for key, a in zip(("pa", "lat"), acqs)}
-    init, refine = make_predictors(model_files(default_models_dir()), device="cpu")
+    init, refine = make_predictors(verify_models(default_models_dir()), device="cpu")
     case = register_case(
         subject.cta, {k: s.run for k, s in sims.items()}, init=init, refine=refine,
         cranium_mask=subject.labels.like(L.cranium_mask(subject.labels.array).astype(np.uint8)),

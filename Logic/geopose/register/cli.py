@@ -1,4 +1,8 @@
-"""``geopose register``: register a CTA to a PA + lateral DSA pair and write result.json + overlays."""
+"""``geopose register``: register a CTA to a PA + lateral DSA pair and write result.json + overlays.
+
+The output folder is checked, locked and cleared before any work (:class:`~geopose.outputs.OutputFolder`);
+the overlays are written atomically and ``result.json`` last, listing their checksums.
+"""
 
 from __future__ import annotations
 
@@ -6,19 +10,22 @@ import argparse
 import json
 from pathlib import Path
 
+from .. import contract as C
 from ..cta import load_cta
 from ..cta.io import file_sha256
 from ..dsa import geometry_override_args, geometry_overrides_from_args, model_clip_arg, read_dsa
 from ..nets import make_predictors
-from ..nets.model_io import model_files, read_model_header
+from ..nets.manifest import MANIFEST_NAME, verify_models
+from ..nets.model_io import read_model_header
+from ..options import RegistrationOptions
+from ..outputs import OutputFolder
 from ..resources import default_models_dir
-from .. import contract as C
+from . import results
 from .evaluate import load_truth, truth_metrics
 from .pipeline import register_case, resolve_device
-from .results import RegistrationOptions
 from .progress import ConsoleProgress
-from .record import build_record, write_record
-from .report import write_overlays
+from .record import build_record
+from .report import OVERLAY_NAMES, write_overlays
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,7 +36,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hu-offset", type=float, default=0.0, help="added to the CTA's values to make HU (e.g. -1024)")
     p.add_argument("--cranium-mask", help="CTA cranium mask on the CTA grid (default: computed from the CTA)")
     p.add_argument("--segmentation", help="CTA vessel label map on the CTA grid (default: contrast threshold)")
-    p.add_argument("--models", help="folder with the Init and Refine model files (default: the shipped models)")
+    p.add_argument("--models", help="folder with the Init and Refine model files and their manifest.json (default: the shipped models)")
+    p.add_argument("--allow-unverified-models", action="store_true",
+                   help="use a --models folder without manifest.json (its files are not checksum-verified)")
     p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch")
     p.add_argument("--iterations", type=int, default=C.TTO_ITERATIONS, help="test-time optimisation steps (0: none)")
     p.add_argument("--refine-steps", type=int, default=C.GREEDY_MAX_PROPOSALS, help="greedy refinement proposals")
@@ -44,16 +53,26 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    options = RegistrationOptions(
+        backend=args.backend, device=args.device, refine_steps=args.refine_steps, iterations=args.iterations,
+        tto_px=args.tto_px, model_clip_percentiles=args.model_clip_percentiles, biplanar=args.biplanar,
+    )
     record = register_files(
         args.cta, args.dsa_pa, args.dsa_lat, args.out,
-        cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models, backend=args.backend,
-        hu_offset=args.hu_offset,
-        options=RegistrationOptions(args.refine_steps, args.iterations, args.tto_px, args.biplanar, args.device,
-                                    args.model_clip_percentiles),
+        cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models,
+        allow_unverified_models=args.allow_unverified_models, hu_offset=args.hu_offset, options=options,
         overrides={k: geometry_overrides_from_args(args, prefix=f"{k}-") for k in ("pa", "lat")},
     )
     print_summary(record, Path(args.out))
     return 0
+
+
+def _engine_options(options: RegistrationOptions, device: str) -> results.RegistrationOptions:
+    """The current engine's options record (until the engine takes :class:`geopose.options.RegistrationOptions`)."""
+    return results.RegistrationOptions(
+        refine_steps=options.refine_steps, iterations=options.iterations, tto_px=options.tto_px, biplanar=options.biplanar,
+        device=device, model_clip_percentiles=options.model_clip_percentiles or C.MAP_CLIP_PERCENTILES,
+    )
 
 
 def register_files(
@@ -65,51 +84,56 @@ def register_files(
     cranium_mask: str | Path | None = None,
     segmentation: str | Path | None = None,
     models: str | Path | None = None,
-    backend: str = "torch",
+    allow_unverified_models: bool = False,
     options: RegistrationOptions | None = None,
     overrides: dict[str, dict] | None = None,
     hu_offset: float = 0.0,
     progress=None,
 ) -> dict:
-    """Read the files, register, and write ``result.json`` and the overlays into ``out``; returns the record.
+    """Read the files, register, and write the overlays and then ``result.json`` into ``out``; returns the record.
 
-    A ``truth.json`` next to the CTA (a ``geopose phantom`` case) adds accuracy metrics.
+    ``out`` is checked, locked and cleared first (:class:`~geopose.outputs.OutputFolder`); a run that
+    fails or is killed leaves no ``result.json``. A ``truth.json`` next to the CTA (a ``geopose
+    phantom`` case) adds accuracy metrics. ``overrides[view]`` are ``read_dsa`` keywords.
     """
-    out = Path(out)
     options = options or RegistrationOptions()
-    device = resolve_device(options.device)
-    options.device = str(device)
+    backend = "torch" if options.backend == "auto" else options.backend
     overrides = overrides or {}
-    cta = load_cta(cta_path, hu_offset=hu_offset)
-    runs = {
-        "pa": read_dsa(dsa_pa, **overrides.get("pa", {})),
-        "lat": read_dsa(dsa_lat, **overrides.get("lat", {})),
-    }
-    cranium = load_cta(cranium_mask, check_hu=False) if cranium_mask else None
-    seg = load_cta(segmentation, check_hu=False) if segmentation else None
-    files = model_files(Path(models) if models else default_models_dir())
-    init, refine = make_predictors(files, backend=backend, device=device)
-    case = register_case(
-        cta, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=seg, options=options,
-        progress=progress if progress is not None else ConsoleProgress(),
-    )
-    truth = load_truth(cta_path)
-    inputs = {"cta": {"path": str(cta_path), "sha256": cta.metadata.get("sha256")}}
-    for key, path in (("pa", dsa_pa), ("lat", dsa_lat)):
-        inputs[f"dsa_{key}"] = {"path": str(path), "sha256": runs[key].metadata.get("sha256")}
-    for name, path in (("cranium_mask", cranium_mask), ("segmentation", segmentation)):
-        if path:
-            inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
-    model_info: dict = {
-        kind: {"path": str(path), "sha256": file_sha256([path]), "architecture": read_model_header(path)["architecture"]}
-        for kind, path in files.items()
-    }
-    model_info["backend"] = backend
-    record = build_record(
-        case, runs, inputs=inputs, models=model_info, truth_metrics=truth_metrics(case, runs, truth) if truth else None
-    )
-    write_record(record, out / "result.json")
-    write_overlays(case, out, truth.carotid_points_mm if truth else None)
+    with OutputFolder(out, OVERLAY_NAMES) as folder:
+        cta = load_cta(cta_path, hu_offset=hu_offset)
+        runs = {
+            "pa": read_dsa(dsa_pa, **overrides.get("pa", {})),
+            "lat": read_dsa(dsa_lat, **overrides.get("lat", {})),
+        }
+        cranium = load_cta(cranium_mask, check_hu=False) if cranium_mask else None
+        seg = load_cta(segmentation, check_hu=False) if segmentation else None
+        models_dir = Path(models) if models else default_models_dir()
+        files = verify_models(models_dir, allow_unverified=allow_unverified_models)
+        device = resolve_device(options.device)
+        init, refine = make_predictors(files, backend=backend, device=device)
+        case = register_case(
+            cta, runs, init=init, refine=refine, cranium_mask=cranium, segmentation=seg,
+            options=_engine_options(options, str(device)),
+            progress=progress if progress is not None else ConsoleProgress(),
+        )
+        truth = load_truth(cta_path)
+        inputs = {"cta": {"path": str(cta_path), "sha256": cta.metadata.get("sha256")}}
+        for key, path in (("pa", dsa_pa), ("lat", dsa_lat)):
+            inputs[f"dsa_{key}"] = {"path": str(path), "sha256": runs[key].metadata.get("sha256")}
+        for name, path in (("cranium_mask", cranium_mask), ("segmentation", segmentation)):
+            if path:
+                inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
+        model_info: dict = {
+            kind: {"path": str(path), "sha256": file_sha256([path]), "architecture": read_model_header(path)["architecture"]}
+            for kind, path in files.items()
+        }
+        model_info["backend"] = backend
+        model_info["verified_by_manifest"] = (models_dir / MANIFEST_NAME).is_file()
+        record = build_record(
+            case, runs, inputs=inputs, models=model_info, truth_metrics=truth_metrics(case, runs, truth) if truth else None
+        )
+        write_overlays(case, folder, truth.carotid_points_mm if truth else None)
+        folder.commit(record)
     return record
 
 
