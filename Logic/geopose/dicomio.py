@@ -28,7 +28,7 @@ from pydicom import uid as U
 from . import limits as L
 from .errors import InputError
 
-__all__ = ["read_dataset", "decode_frames", "is_image_storage", "int_tag", "float_tag", "floats_tag"]
+__all__ = ["read_dataset", "decode_frames", "is_image_storage", "int_tag", "float_tag", "floats_tag", "raw_tag"]
 
 UNCOMPRESSED = {U.ImplicitVRLittleEndian, U.ExplicitVRLittleEndian, U.DeflatedExplicitVRLittleEndian, U.ExplicitVRBigEndian}
 JPEG_SYNTAXES = {U.JPEGBaseline8Bit, U.JPEGExtended12Bit, U.JPEGLossless, U.JPEGLosslessSV1, U.JPEGLSLossless, U.JPEGLSNearLossless}
@@ -89,23 +89,33 @@ def int_tag(ds: pydicom.Dataset, keyword: str, name: str, default: int | None = 
         raise InputError(f"{name} has a damaged {keyword} ({str(value)[:40]!r}); {_REMEDY_COPY}") from None
 
 
-def float_tag(ds: pydicom.Dataset, keyword: str) -> float | None:
-    """A number tag as float, ``None`` when absent or not one finite number."""
-    values = floats_tag(ds, keyword)
-    return values[0] if values and len(values) == 1 else None
-
-
-def floats_tag(ds: pydicom.Dataset, keyword: str) -> list[float] | None:
-    """A (multi-valued) number tag as floats, ``None`` when absent or not all finite numbers."""
+def raw_tag(ds: pydicom.Dataset, keyword: str) -> object | None:
+    """A tag's value as stored, ``None`` when absent or empty."""
     value = ds.get(keyword)
-    if value is None or value == "":
+    return None if value is None or value == "" else value
+
+
+def floats_tag(ds: pydicom.Dataset, keyword: str, name: str) -> list[float] | None:
+    """A (multi-valued) number tag as finite floats, ``None`` when absent; a damaged value is an :class:`InputError`."""
+    value = raw_tag(ds, keyword)
+    if value is None:
         return None
     items = value if isinstance(value, (list, tuple, pydicom.multival.MultiValue)) else [value]
     try:
         out = [float(v) for v in items]
     except (TypeError, ValueError, OverflowError):
-        return None
-    return out if out and all(np.isfinite(out)) else None
+        out = []
+    if not out or not all(np.isfinite(out)):
+        raise InputError(f"{name} has a damaged {keyword} ({str(value)[:40]!r}, not finite numbers); {_REMEDY_COPY}")
+    return out
+
+
+def float_tag(ds: pydicom.Dataset, keyword: str, name: str) -> float | None:
+    """A one-number tag as a finite float, ``None`` when absent; a damaged value is an :class:`InputError`."""
+    values = floats_tag(ds, keyword, name)
+    if values is not None and len(values) != 1:
+        raise InputError(f"{name} has {len(values)} values in {keyword}, not one; {_REMEDY_COPY}")
+    return None if values is None else values[0]
 
 
 # --------------------------------------------------------------------- decoding
@@ -148,23 +158,27 @@ def decode_frames(
         raw, integrity = _encapsulated(bytes(data), syntax, n, rows, cols, allocated, stored, signed, name)
     else:
         raise InputError(f"{name} uses transfer syntax {getattr(syntax, 'name', syntax)}, which this reader does not decode: {_REMEDY_DECOMPRESS}")
-    values = _mask(raw, stored, signed)
+    values = _stored_values(raw, allocated, stored, signed, name)
     frames = values.astype(np.float32)
-    slope, intercept = floats_tag(ds, "RescaleSlope"), floats_tag(ds, "RescaleIntercept")
-    if ("RescaleSlope" in ds and slope is None) or ("RescaleIntercept" in ds and intercept is None):
-        raise InputError(f"{name} has a damaged RescaleSlope/RescaleIntercept; {_REMEDY_COPY}")
+    slope, intercept = float_tag(ds, "RescaleSlope", name), float_tag(ds, "RescaleIntercept", name)
     if slope is not None or intercept is not None:
-        frames = frames * np.float32(slope[0] if slope else 1.0) + np.float32(intercept[0] if intercept else 0.0)
+        frames = frames * np.float32(1.0 if slope is None else slope) + np.float32(intercept or 0.0)
+        if not np.all(np.isfinite(frames)):
+            raise InputError(f"{name}: RescaleSlope {slope} / RescaleIntercept {intercept} make the pixel values overflow; {_REMEDY_COPY}")
     return frames, {"pixel_integrity": integrity}
 
 
-def _mask(values: np.ndarray, stored: int, signed: int) -> np.ndarray:
-    """Keep the ``stored`` low bits (sign-extended when ``signed``), as int64."""
+def _stored_values(values: np.ndarray, allocated: int, stored: int, signed: int, name: str) -> np.ndarray:
+    """The stored values as int64; values outside the range BitsStored allows are an :class:`InputError`
+    (the header or the data are damaged: masking them would silently change the image)."""
     v = values.astype(np.int64)
-    if stored < 64:
-        v &= (1 << stored) - 1
-        if signed:
-            v = np.where(v >= 1 << (stored - 1), v - (1 << stored), v)
+    if stored < allocated:
+        lo, hi = (-(1 << (stored - 1)), (1 << (stored - 1)) - 1) if signed else (0, (1 << stored) - 1)
+        if signed and v.min() >= 0 and v.max() >= 1 << (allocated - 1):  # unsigned-typed decoder output
+            v = np.where(v >= 1 << (allocated - 1), v - (1 << allocated), v)
+        if v.min() < lo or v.max() > hi:
+            raise InputError(f"{name}: pixel values reach {int(v.min())}..{int(v.max())}, outside the {lo}..{hi} that BitsStored "
+                             f"{stored} allows: the header or the pixel data are damaged; {_REMEDY_COPY}")
     return v
 
 

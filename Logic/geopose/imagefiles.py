@@ -221,6 +221,19 @@ def _int_list(path: Path, key: str, text: str) -> list[int]:
         raise InputError(f"{path.name} has a damaged '{key}' field ({text[:40]!r}); {_REMEDY}") from None
 
 
+def _check_counts(path: Path, fields: dict[str, str], counts: dict[str, int]) -> None:
+    """Each present numeric field holds exactly ``counts[key]`` finite numbers."""
+    for key, n in counts.items():
+        if key not in fields:
+            continue
+        try:
+            values = [float(v) for v in fields[key].split()]
+        except ValueError:
+            values = []
+        if len(values) != n or not all(math.isfinite(v) for v in values):
+            raise InputError(f"{path.name} has a damaged '{key}' field ({fields[key][:60]!r}; {n} finite numbers expected); {_REMEDY}")
+
+
 def _data_files(header: Path, spec: str, rest: list[str], what: str) -> list[Path]:
     """Files of a detached header's data-file field: one name, ``LIST`` (names follow) or a pattern ``fmt min max step``."""
     parts = spec.split()
@@ -256,10 +269,13 @@ def _nrrd(path: Path, max_voxels: int) -> DeclaredImage:
         if key.strip().lower() in ("data file", "datafile") and value.strip().upper().startswith("LIST"):
             rest = lines[i + 1:]
             break
-    for key in ("type", "sizes", "encoding"):
+    for key in ("type", "dimension", "sizes", "encoding"):
         if key not in fields:
             raise InputError(f"{path.name} has no '{key}' field: the NRRD header is damaged; {_REMEDY}")
     shape = _grid(path, _int_list(path, "sizes", fields["sizes"]), max_voxels)
+    if _int_list(path, "dimension", fields["dimension"]) != [len(shape)] or len(shape) > 16:
+        raise InputError(f"{path.name} has dimension {fields['dimension']!r} and sizes {fields['sizes']!r}: they do not agree; "
+                         f"the NRRD header is damaged; {_REMEDY}")
     code = _NRRD_TYPES.get(fields["type"].lower())
     if code is None:
         raise InputError(f"{path.name} has NRRD type {fields['type']!r}, not a voxel type read here; {_REMEDY}")
@@ -326,10 +342,17 @@ def _metaimage(path: Path, max_voxels: int) -> DeclaredImage:
         if "=" in line:
             key, value = line.split("=", 1)
             fields[key.strip().lower()] = value.strip()
-    for key in ("dimsize", "elementtype", "elementdatafile"):
+    for key in ("ndims", "dimsize", "elementtype", "elementdatafile"):
         if key not in fields:
             raise InputError(f"{path.name} has no '{key}' field: the MetaImage header is damaged; {_REMEDY}")
+    ndims = _int_list(path, "NDims", fields["ndims"])
     shape = _grid(path, _int_list(path, "DimSize", fields["dimsize"]), max_voxels)
+    if len(ndims) != 1 or not 1 <= ndims[0] <= 7 or len(shape) != ndims[0]:
+        raise InputError(f"{path.name} has NDims {fields['ndims']!r} and DimSize {fields['dimsize']!r}: they do not agree; "
+                         f"the MetaImage header is damaged; {_REMEDY}")
+    _check_counts(path, fields, {k: len(shape) for k in ("elementspacing", "elementsize", "offset", "position", "origin",
+                                                          "centerofrotation")}
+                  | {k: len(shape) ** 2 for k in ("transformmatrix", "rotation", "orientation")})
     code = _MET_TYPES.get(fields["elementtype"].upper())
     if code is None:
         raise InputError(f"{path.name} has ElementType {fields['elementtype']!r}, not a voxel type read here; {_REMEDY}")
@@ -353,6 +376,11 @@ def _metaimage(path: Path, max_voxels: int) -> DeclaredImage:
     if compressed:
         if len(files) != 1:
             raise InputError(f"{path.name}: compressed MetaImage data in several files is not read here; {_REMEDY}")
+        size = _int_list(path, "CompressedDataSize", fields.get("compresseddatasize", ""))
+        available = files[0].stat().st_size - (start if local else max(header_size, 0))
+        if len(size) != 1 or size[0] != available:
+            raise InputError(f"{path.name} declares CompressedDataSize {fields.get('compresseddatasize', '')!r} but holds "
+                             f"{available} compressed bytes: the file is truncated or its header damaged; {_REMEDY}")
 
         def chunks() -> Iterator[bytes]:
             inflater = zlib.decompressobj(47)  # zlib or gzip header

@@ -24,7 +24,7 @@ import numpy as np
 import pydicom
 
 from .. import limits as L
-from ..dicomio import decode_frames, floats_tag, read_dataset
+from ..dicomio import decode_frames, floats_tag, is_image_storage, read_dataset
 from ..errors import InputError
 
 __all__ = ["read_dicom_series"]
@@ -45,11 +45,14 @@ def _series_headers(folder: Path) -> dict[str, list[tuple[Path, pydicom.Dataset]
             raise
         if "Rows" in ds or "PixelData" in ds or "ImagePositionPatient" in ds:
             series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((f, ds))
+        elif is_image_storage(ds):
+            raise InputError(f"{f.name} is a DICOM image file without its image data: it is truncated or damaged; "
+                             "copy the series again")
     return series
 
 
 def _vector(ds: pydicom.Dataset, keyword: str, n: int, f: Path) -> np.ndarray:
-    values = floats_tag(ds, keyword)
+    values = floats_tag(ds, keyword, f.name)
     if values is None or len(values) != n:
         raise InputError(f"{f.name} has no readable {keyword} ({n} numbers): the slice cannot be placed; the series is "
                          "truncated or damaged; copy it again or export it as NIfTI/NRRD")
@@ -136,9 +139,16 @@ def _regularise(
     n_out = max(2, int(round((depths[-1] - depths[0]) / step)) + 1)
     dz = (depths[-1] - depths[0]) / (n_out - 1)
     di, dj = offsets[:, 0] / spacing[1], offsets[:, 1] / spacing[0]
-    i0, j0 = math.floor(di.min()), math.floor(dj.min())
     h, w = planes.shape[1:]
+    hi = L.CTA_VOXELS_PER_AXIS[1]
+    if n_out > hi or max(abs(di).max(), abs(dj).max()) > hi or depths[-1] - depths[0] > L.CTA_EXTENT_MM[1]:
+        raise InputError(f"the slice positions span {depths[-1] - depths[0]:.4g} mm with in-plane shifts up to "
+                         f"{max(abs(offsets).max(), 0):.4g} mm: no plausible CT; ImagePositionPatient is damaged")
+    i0, j0 = math.floor(di.min()), math.floor(dj.min())
     shape = (h + math.ceil(dj.max()) - j0, w + math.ceil(di.max()) - i0)
+    if shape[0] > hi or shape[1] > hi or n_out * shape[0] * shape[1] > L.CTA_MAX_VOXELS:
+        raise InputError(f"resampling the series would need {n_out} x {shape[0]} x {shape[1]} voxels: the slice positions "
+                         "(ImagePositionPatient) are damaged")
     fill = float(planes.min())
     out = np.empty((n_out,) + shape, dtype=np.float32)
     for t in range(n_out):

@@ -40,7 +40,7 @@ import SimpleITK as sitk
 
 from .. import limits as L
 from ..checksums import file_sha256
-from ..dicomio import decode_frames, float_tag, floats_tag, read_dataset
+from ..dicomio import decode_frames, float_tag, floats_tag, int_tag, raw_tag, read_dataset
 from ..errors import InputError
 from ..geometry.detector import CArmAngles, Detector
 from ..imagefiles import IMAGE_EXTENSIONS, check_image_file, image_extension
@@ -68,26 +68,26 @@ def sidecar_path(image_path: str | Path) -> Path:
     return p.with_name(stem + ".json")
 
 
-def _number(value: Any, key: str, origin: str) -> float:
+def _number(value: Any, origin: str) -> float:
     if isinstance(value, (bool, dict, list, tuple)) or value is None:
-        raise InputError(f"{key} ({origin}) must be a number, got {value!r}")
+        raise InputError(f"{origin} must be a number, got {value!r}")
     try:
         return float(value)
     except (TypeError, ValueError, OverflowError):
-        raise InputError(f"{key} ({origin}) must be a number, got {value!r}") from None
+        raise InputError(f"{origin} must be a number, got {str(value)[:60]!r}") from None
 
 
 def _normalise(key: str, value: Any, origin: str) -> Any:
     """A scalar key as float; ``pixel_spacing_mm`` / ``principal_offset_mm`` as a (row, col) / (x0, y0) pair."""
     if key not in ("pixel_spacing_mm", "principal_offset_mm"):
-        return _number(value, key, origin)
+        return _number(value, origin)
     items = list(value) if isinstance(value, (list, tuple, np.ndarray, pydicom.multival.MultiValue)) else [value]
     if len(items) == 1 and key == "pixel_spacing_mm":
         items = items * 2
     if len(items) != 2:
-        raise InputError(f"{key} ({origin}) needs {'one or ' if key == 'pixel_spacing_mm' else ''}two numbers "
-                         f"{'(row, col)' if key == 'pixel_spacing_mm' else '(x0, y0)'}, got {value!r}")
-    return tuple(_number(v, key, origin) for v in items)
+        raise InputError(f"{origin} needs {'one or ' if key == 'pixel_spacing_mm' else ''}two numbers "
+                         f"{'(row, col)' if key == 'pixel_spacing_mm' else '(x0, y0)'}, got {str(value)[:60]!r}")
+    return tuple(_number(v, origin) for v in items)
 
 
 def _assemble(
@@ -109,7 +109,7 @@ def _assemble(
             sources[key] = "override"
 
     def origin(key: str) -> str:
-        return "override" if sources.get(key) == "override" else f"{where(key)} in {name}"
+        return f"the override {key}" if sources.get(key) == "override" else f"{where(key)} in {name}"
 
     values = {k: _normalise(k, v, origin(k)) for k, v in found.items() if v is not None}
     missing = [k for k in REQUIRED_GEOMETRY_KEYS if k not in values]
@@ -183,45 +183,49 @@ def _photometric(declared: str, confirmed: str | None, frames: np.ndarray, name:
 # ------------------------------------------------------------------------- DICOM
 
 
-def _dicom_geometry(ds: pydicom.Dataset, rows: int, cols: int) -> tuple[dict, dict, dict]:
-    """Geometry values, their sources and notes from one DICOM dataset."""
+def _dicom_geometry(ds: pydicom.Dataset, rows: int, cols: int, name: str) -> tuple[dict, dict, dict]:
+    """Geometry values (as stored: :func:`_normalise` converts and names a damaged one), their sources
+    and notes from one DICOM dataset."""
     found: dict[str, Any] = {
-        "primary_deg": float_tag(ds, "PositionerPrimaryAngle"),
-        "secondary_deg": float_tag(ds, "PositionerSecondaryAngle"),
-        "sid_mm": float_tag(ds, "DistanceSourceToDetector"),
-        "sod_mm": float_tag(ds, "DistanceSourceToPatient"),
+        "primary_deg": raw_tag(ds, "PositionerPrimaryAngle"),
+        "secondary_deg": raw_tag(ds, "PositionerSecondaryAngle"),
+        "sid_mm": raw_tag(ds, "DistanceSourceToDetector"),
+        "sod_mm": raw_tag(ds, "DistanceSourceToPatient"),
     }
     sources = {k: GEOMETRY_SOURCES[k].split(" (")[0] for k, v in found.items() if v is not None}
     notes: dict[str, str] = {}
-    imager = floats_tag(ds, "ImagerPixelSpacing")
-    pixel = floats_tag(ds, "PixelSpacing")
-    magnification = float_tag(ds, "EstimatedRadiographicMagnificationFactor")
-    fov = floats_tag(ds, "FieldOfViewDimensions")
-    intensifier = float_tag(ds, "IntensifierSize")
-    if imager:
+    imager = raw_tag(ds, "ImagerPixelSpacing")
+    pixel = floats_tag(ds, "PixelSpacing", name) if imager is None else None
+    fov = floats_tag(ds, "FieldOfViewDimensions", name) if imager is None and pixel is None else None
+    if imager is not None:
         found["pixel_spacing_mm"], sources["pixel_spacing_mm"] = imager, "ImagerPixelSpacing"
-    elif pixel and magnification:
-        found["pixel_spacing_mm"] = [p * magnification for p in pixel]
-        sources["pixel_spacing_mm"] = "PixelSpacing x EstimatedRadiographicMagnificationFactor"
     elif pixel:
-        found["pixel_spacing_mm"], sources["pixel_spacing_mm"] = pixel, "PixelSpacing (taken as detector plane)"
+        magnification = float_tag(ds, "EstimatedRadiographicMagnificationFactor", name)
+        if magnification:
+            found["pixel_spacing_mm"] = [p * magnification for p in pixel]
+            sources["pixel_spacing_mm"] = "PixelSpacing x EstimatedRadiographicMagnificationFactor"
+        else:
+            found["pixel_spacing_mm"], sources["pixel_spacing_mm"] = pixel, "PixelSpacing (taken as detector plane)"
     elif fov and len(fov) in (1, 2):
         found["pixel_spacing_mm"] = [fov[0] / rows, fov[-1] / cols] if len(fov) == 2 else [fov[0] / max(rows, cols)] * 2
         sources["pixel_spacing_mm"] = f"FieldOfViewDimensions ({' x '.join(f'{v:g}' for v in fov)} mm) / matrix ({rows} x {cols})"
-    elif intensifier:
-        found["pixel_spacing_mm"] = [intensifier / max(rows, cols)] * 2
-        sources["pixel_spacing_mm"] = f"IntensifierSize ({intensifier:g} mm) / matrix ({rows} x {cols})"
-    frame_time = float_tag(ds, "FrameTime")
-    vector = floats_tag(ds, "FrameTimeVector")
-    if frame_time:
+    else:
+        intensifier = float_tag(ds, "IntensifierSize", name)
+        if intensifier:
+            found["pixel_spacing_mm"] = [intensifier / max(rows, cols)] * 2
+            sources["pixel_spacing_mm"] = f"IntensifierSize ({intensifier:g} mm) / matrix ({rows} x {cols})"
+    frame_time = raw_tag(ds, "FrameTime")
+    if frame_time is not None and str(frame_time).strip() not in ("0", "0.0"):
         found["frame_time_ms"], sources["frame_time_ms"] = frame_time, "FrameTime"
-    elif vector and len(vector) > 1:
-        found["frame_time_ms"], sources["frame_time_ms"] = float(np.mean(vector[1:])), "FrameTimeVector (mean)"
-    origin = floats_tag(ds, "DetectorActiveOrigin")
-    if origin and len(origin) == 2 and found.get("pixel_spacing_mm"):
-        physical = floats_tag(ds, "PhysicalDetectorSize")
-        active = floats_tag(ds, "DetectorActiveDimensions")
-        spacing = _normalise("pixel_spacing_mm", found["pixel_spacing_mm"], sources["pixel_spacing_mm"])
+    else:
+        vector = floats_tag(ds, "FrameTimeVector", name)
+        if vector and len(vector) > 1:
+            found["frame_time_ms"], sources["frame_time_ms"] = float(np.mean(vector[1:])), "FrameTimeVector (mean)"
+    origin = floats_tag(ds, "DetectorActiveOrigin", name)
+    if origin and len(origin) == 2 and found.get("pixel_spacing_mm") is not None:
+        physical = floats_tag(ds, "PhysicalDetectorSize", name)
+        active = floats_tag(ds, "DetectorActiveDimensions", name)
+        spacing = _normalise("pixel_spacing_mm", found["pixel_spacing_mm"], f"{sources['pixel_spacing_mm']} in {name}")
         if physical and len(physical) == 2:
             h, w = active if active and len(active) == 2 else (rows * spacing[0], cols * spacing[1])
             d_row = origin[0] + h / 2 - physical[0] / 2
@@ -238,7 +242,7 @@ def _dicom_metadata(ds: pydicom.Dataset, path: Path, files: list[Path]) -> dict:
         "source_path": str(path.resolve()),
         "source_files": len(files),
         "sha256": file_sha256(files),
-        "bits_stored": int(float_tag(ds, "BitsStored") or 0),
+        "bits_stored": int_tag(ds, "BitsStored", path.name, 0),
         "transfer_syntax": str(ds.file_meta.get("TransferSyntaxUID", "")) if hasattr(ds, "file_meta") else "",
     }
     for key in ("PatientID", "StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID", "SOPClassUID", "Modality", "SeriesDescription"):
@@ -258,7 +262,7 @@ def _frames(ds: pydicom.Dataset, name: str) -> tuple[np.ndarray, dict]:
 def _read_dicom_file(path: Path, overrides: dict, photometric: str | None) -> DSARun:
     ds = read_dataset(path)
     frames, notes = _frames(ds, path.name)
-    found, sources, geo_notes = _dicom_geometry(ds, frames.shape[1], frames.shape[2])
+    found, sources, geo_notes = _dicom_geometry(ds, frames.shape[1], frames.shape[2], path.name)
     meta = _dicom_metadata(ds, path, [path])
     meta.update(notes, **geo_notes)
     _photometric(_declared_photometric(ds), photometric, frames, path.name, meta)
@@ -294,7 +298,7 @@ def _read_dicom_folder(folder: Path, overrides: dict, photometric: str | None) -
     headers = [(f, ds) for f, ds in _dicom_headers(folder) if "Rows" in ds]
     if not headers:
         raise InputError(f"{folder} holds no DICOM images: point to the folder of the run's frames or to its file")
-    multi = [f for f, ds in headers if (float_tag(ds, "NumberOfFrames") or 1) > 1]
+    multi = [f for f, ds in headers if int_tag(ds, "NumberOfFrames", f.name, 1) > 1]
     if len(headers) == 1 or multi:
         if len(headers) == 1:
             return _read_dicom_file(headers[0][0], overrides, photometric)
@@ -302,12 +306,13 @@ def _read_dicom_folder(folder: Path, overrides: dict, photometric: str | None) -
     series = {str(ds.get("SeriesInstanceUID", "")) for _, ds in headers}
     if len(series) > 1:
         raise InputError(f"{folder} holds {len(series)} series: put one run's frames in a folder of their own")
-    check_frames_shape((len(headers), int(float_tag(headers[0][1], "Rows") or 0), int(float_tag(headers[0][1], "Columns") or 0)), folder.name)
-    headers.sort(key=lambda fd: (float_tag(fd[1], "InstanceNumber") or 0, _dicom_time_s(fd[1]) or 0.0, fd[0].name))
+    check_frames_shape((len(headers), int_tag(headers[0][1], "Rows", headers[0][0].name), int_tag(headers[0][1], "Columns", headers[0][0].name)),
+                       folder.name)
+    headers.sort(key=lambda fd: (int_tag(fd[1], "InstanceNumber", fd[0].name, 0), _dicom_time_s(fd[1]) or 0.0, fd[0].name))
     first = headers[0][1]
     for f, ds in headers[1:]:
         for key in ("PositionerPrimaryAngle", "PositionerSecondaryAngle"):
-            a, b = float_tag(first, key), float_tag(ds, key)
+            a, b = float_tag(first, key, headers[0][0].name), float_tag(ds, key, f.name)
             if a is not None and b is not None and abs(a - b) > ANGLE_TOLERANCE_DEG:
                 raise InputError(f"{f.name} has {key} {b} but the first frame {a}: the folder is not one fixed-angle run")
     decoded = [_frames(read_dataset(f), f.name) for f, _ in headers]
@@ -315,7 +320,7 @@ def _read_dicom_folder(folder: Path, overrides: dict, photometric: str | None) -
     if len(shapes) > 1:
         raise InputError(f"{folder} holds frames of different sizes {sorted(shapes)}: the folder is not one run")
     frames = np.concatenate([frames for frames, _ in decoded])
-    found, sources, notes = _dicom_geometry(first, frames.shape[1], frames.shape[2])
+    found, sources, notes = _dicom_geometry(first, frames.shape[1], frames.shape[2], headers[0][0].name)
     if "frame_time_ms" not in sources:
         times = [t for t in (_dicom_time_s(ds) for _, ds in headers) if t is not None]
         if len(times) == len(headers) > 1 and np.all(np.diff(times) > 0):
