@@ -10,6 +10,7 @@ escaping it is recorded as ``other exception``.
 
 from __future__ import annotations
 
+import faulthandler
 import multiprocessing
 import os
 import resource
@@ -122,7 +123,9 @@ def _limit_memory(memory_bytes: int) -> None:
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
 
-def _worker(conn, case: Callable[[int], tuple[str, str, str, str]], memory_bytes: int) -> None:
+def _worker(conn, case: Callable[[int], tuple[str, str, str, str]], describe: Callable[[int], tuple[str, str]],
+            memory_bytes: int) -> None:
+    faulthandler.disable()  # a crash is reported by the parent, not dumped by the worker
     _limit_memory(memory_bytes)
     while True:
         index = conn.recv()
@@ -132,9 +135,9 @@ def _worker(conn, case: Callable[[int], tuple[str, str, str, str]], memory_bytes
         try:
             target, mutation, outcome, detail = case(index)
         except MemoryError:
-            target, mutation, outcome, detail = "?", "?", "out of memory", "MemoryError"
+            (target, mutation), outcome, detail = describe(index), "out of memory", "MemoryError"
         except BaseException as exc:  # the case function's own guard failed: an escaped exception
-            target, mutation, outcome = "?", "?", "other exception"
+            (target, mutation), outcome = describe(index), "other exception"
             detail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
         conn.send((target, mutation, outcome, detail[:2000], time.perf_counter() - start))
 
@@ -158,7 +161,7 @@ def run_cases(
 
     def spawn():
         parent, child = ctx.Pipe()
-        proc = ctx.Process(target=_worker, args=(child, case, memory_bytes), daemon=True)
+        proc = ctx.Process(target=_worker, args=(child, case, describe, memory_bytes), daemon=True)
         proc.start()
         child.close()
         return proc, parent
@@ -172,20 +175,18 @@ def run_cases(
                 index = queue.pop(0)
             start = time.perf_counter()
             conn.send(index)
-            result = None
+            result, outcome = None, "hang"
             if conn.poll(timeout_s):
                 try:
                     target, mutation, outcome, detail, seconds = conn.recv()
                     result = CaseResult(index, target, mutation, outcome, detail, seconds)
-                except EOFError:
-                    pass
+                except (EOFError, OSError):  # the worker died
+                    outcome = "crash"
             if result is None:
-                alive = proc.is_alive()
-                if alive:
+                if outcome == "hang":
                     proc.kill()
                 proc.join()
                 target, mutation = describe(index)
-                outcome = "hang" if alive else "crash"
                 result = CaseResult(index, target, mutation, outcome, f"exit code {proc.exitcode}", time.perf_counter() - start)
                 conn.close()
                 proc, conn = spawn()

@@ -70,6 +70,20 @@ def _phantom_run(frames: int = 4, size: int = 64) -> DSARun:
     return DSARun.from_attenuation(att * 20, det, CArmAngles(28.0, -6.0, 1100.0, 750.0), 66.7, {})
 
 
+def _fixed_identity(path: Path, salt: str) -> Path:
+    """Replace the writer's fresh UIDs, dates and times by fixed ones, so originals are byte-identical run to run."""
+    ds = pydicom.dcmread(path)
+    uid = lambda tag: generate_uid(entropy_srcs=[salt, tag])  # noqa: E731
+    ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = uid("sop")
+    ds.StudyInstanceUID, ds.SeriesInstanceUID = uid("study"), uid("series")
+    for key in ("StudyDate", "SeriesDate", "ContentDate"):
+        setattr(ds, key, "20260101")
+    for key in ("StudyTime", "SeriesTime", "ContentTime"):
+        setattr(ds, key, "120000")
+    ds.save_as(path, enforce_file_format=True)
+    return path
+
+
 def _encapsulated_copy(src: Path, dst: Path, syntax: pydicom.uid.UID, encode: Callable[[np.ndarray], bytes], bits: int) -> None:
     ds = pydicom.dcmread(src)
     stored = ds.pixel_array.reshape(int(ds.NumberOfFrames), ds.Rows, ds.Columns)
@@ -100,12 +114,12 @@ def _ct_volume() -> Volume:
 
 def _write_ct_series(folder: Path, volume: Volume) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    series, study = generate_uid(), generate_uid()
+    series, study = generate_uid(entropy_srcs=["ct", "series"]), generate_uid(entropy_srcs=["ct", "study"])
     spacing = volume.spacing_mm
     origin_lps = volume.ijk_to_ras[:3, 3] * (-1, -1, 1)
     for k, plane in enumerate(volume.array):
         meta = FileMetaDataset()
-        meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = CTImageStorage, generate_uid()
+        meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = CTImageStorage, generate_uid(entropy_srcs=["ct", str(k)])
         meta.TransferSyntaxUID = ExplicitVRLittleEndian
         ds = pydicom.Dataset()
         ds.file_meta = meta
@@ -127,13 +141,13 @@ def build_originals(root: Path) -> dict[str, Any]:
     """Write every original under ``root``; returns what the verification needs."""
     root.mkdir(parents=True, exist_ok=True)
     run = _phantom_run()
-    raw = write_dsa_dicom(run, root / "xa_uncompressed.dcm")
-    raw8 = write_dsa_dicom(run, root / "xa8.dcm", bits=8)
+    raw = _fixed_identity(write_dsa_dicom(run, root / "xa_uncompressed.dcm"), "xa16")
+    raw8 = _fixed_identity(write_dsa_dicom(run, root / "xa8.dcm", bits=8), "xa8")
     _encapsulated_copy(raw8, root / "xa_jpeg_baseline.dcm", JPEGBaseline8Bit, _jpeg_baseline, 8)
     _encapsulated_copy(raw, root / "xa_jpeg_lossless.dcm", JPEGLosslessSV1, lambda f: encode_jpeg_lossless(f, 16), 16)
     for name, syntax in (("xa_jpeg2000", JPEG2000Lossless), ("xa_rle", RLELossless)):
         ds = pydicom.dcmread(raw)
-        ds.compress(syntax)
+        ds.compress(syntax, generate_instance_uid=False)
         ds.save_as(root / f"{name}.dcm", enforce_file_format=True)
     volume = _ct_volume()
     _write_ct_series(root / "ct_series", volume)

@@ -193,6 +193,8 @@ def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True
         raise InputError(f"{name} has {int((~finite).sum())} NaN/infinite voxels: replace them (e.g. with -1024 HU) before loading")
     lo, hi = float(a.min()), float(a.max())
     if lo == hi:
+        if not check_hu and lo == 0:
+            raise InputError(f"{name} is empty (0 everywhere): give a mask with the structure labelled, or leave it out")
         raise InputError(f"{name} is constant ({lo:g} everywhere): the file holds no image; check the export")
     if not check_hu:
         return

@@ -56,9 +56,9 @@ NIFTI_EXTENSIONS = IMAGE_EXTENSIONS
 SIDECAR_KEYS = GEOMETRY_KEYS + ("photometric_interpretation",)
 #: Largest angle difference (deg) tolerated between single-frame files of one run.
 ANGLE_TOLERANCE_DEG = 0.5
-#: A MONOCHROME1 run "looks like MONOCHROME2" when its border is brighter than its centre (as
-#: stored) by more than this fraction of the 1-99 percentile range.
-PHOTOMETRIC_MARGIN = 0.1
+#: A MONOCHROME1 run "looks like MONOCHROME2" when its mean frame's border is brighter than its
+#: centre (as stored) by more than this fraction of the 1-99 percentile range.
+PHOTOMETRIC_MARGIN = 0.05
 
 
 def sidecar_path(image_path: str | Path) -> Path:
@@ -149,11 +149,12 @@ def run_from_geometry(
 
 
 def _check_photometric(frames: np.ndarray, photometric: str, name: str) -> None:
-    """Refuse MONOCHROME1 frames whose border is brighter than their centre (as stored): absorbers would
-    come out dark. Only the declared MONOCHROME1 is checked (the XA image module allows MONOCHROME2 only)."""
+    """Refuse MONOCHROME1 frames whose mean frame has a border (outer tenth) brighter than its centre (inner
+    half), as stored: the head would come out dark. Only a declared MONOCHROME1 is checked (the XA image module
+    allows MONOCHROME2 only); a collimated MONOCHROME1 run may need the override."""
     if photometric != "MONOCHROME1":
         return
-    image = frames.max(axis=0)
+    image = frames.mean(axis=0)
     h, w = image.shape
     bh, bw = max(1, h // 10), max(1, w // 10)
     border = np.concatenate([image[:bh].ravel(), image[-bh:].ravel(), image[:, :bw].ravel(), image[:, -bw:].ravel()])

@@ -166,6 +166,10 @@ def read_checkpoint_state_dict(path: str | os.PathLike) -> dict[str, torch.Tenso
             if len(pickles) != 1 or pickles[0].file_size > L.MAX_CHECKPOINT_STORAGE_BYTES:
                 raise InputError(f"{problem} (no single data.pkl of a plausible size in the archive); {remedy}")
             root = pickles[0].filename.split("/")[0]
+            big = [i for i in infos if i.filename.startswith(f"{root}/data/") and i.file_size > L.MAX_CHECKPOINT_STORAGE_BYTES]
+            if big:
+                raise InputError(f"{path}: storage {big[0].filename} declares {big[0].file_size} bytes, more than the "
+                                 f"{L.MAX_CHECKPOINT_STORAGE_BYTES} a GeoPose network's tensor may have; {remedy}")
             names = {i.filename: i for i in infos}
             order = names.get(f"{root}/byteorder")
             byteorder = archive.read(order).decode(errors="replace").strip() if order and order.file_size < 64 else "little"
