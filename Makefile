@@ -3,7 +3,7 @@ PY ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test test-slow bench clean
+.PHONY: setup demo test test-slow fuzz bench clean
 
 $(BIN)/geopose: pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -22,6 +22,12 @@ test: setup
 
 test-slow: setup
 	GEOPOSE_SLOW=1 $(BIN)/python -m pytest -q
+
+# Input fuzz suite: 10,000 seeded mutations of every input kind (docs/fuzz.md); the default
+# test run does 600 of them (Testing/Python/test_fuzz.py).
+FUZZ_CASES ?= 10000
+fuzz: setup
+	nice -n 10 $(BIN)/python Testing/fuzz/run.py --cases $(FUZZ_CASES) --seed 0 --workers 2 --doc docs/fuzz.md
 
 clean:
 	rm -rf $(VENV) demo_out
