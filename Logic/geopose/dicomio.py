@@ -28,7 +28,8 @@ from pydicom import uid as U
 from . import limits as L
 from .errors import InputError
 
-__all__ = ["read_dataset", "decode_frames", "is_image_storage", "int_tag", "float_tag", "floats_tag", "raw_tag"]
+__all__ = ["read_dataset", "decode_frames", "is_image_storage", "is_non_image", "looks_like_dicom", "int_tag", "float_tag",
+           "floats_tag", "raw_tag"]
 
 UNCOMPRESSED = {U.ImplicitVRLittleEndian, U.ExplicitVRLittleEndian, U.DeflatedExplicitVRLittleEndian, U.ExplicitVRBigEndian}
 JPEG_SYNTAXES = {U.JPEGBaseline8Bit, U.JPEGExtended12Bit, U.JPEGLossless, U.JPEGLosslessSV1, U.JPEGLSLossless, U.JPEGLSNearLossless}
@@ -59,6 +60,27 @@ def read_dataset(path: Path, *, stop_before_pixels: bool = False) -> pydicom.Dat
     except Exception as exc:  # pydicom raises many types for damaged files
         raise InputError(f"{path.name} is a damaged DICOM file (pydicom: {type(exc).__name__}: {_short(exc)}); {_REMEDY_COPY}") from None
     return ds
+
+
+def looks_like_dicom(path: Path) -> bool:
+    """Whether ``path`` is meant to be DICOM: a .dcm/.dicom/.ima name, 'DICM' at byte 128, or a zero preamble
+    (so a damaged slice is refused rather than skipped like a README beside the series)."""
+    if path.suffix.lower() in (".dcm", ".dicom", ".ima"):
+        return True
+    with open(path, "rb") as f:
+        head = f.read(132)
+    return head[128:132] == b"DICM" or (len(head) >= 128 and not any(head[:128]))
+
+
+#: Words of SOP class names that hold no image (skipped beside a series).
+NON_IMAGE_CLASSES = ("SR", "Report", "Presentation State", "Key Object", "Directory", "Waveform", "Raw Data", "Spectroscopy")
+
+
+def is_non_image(ds: pydicom.Dataset) -> bool:
+    """Whether the SOP class is known and holds no image (a report, presentation state, DICOMDIR...)."""
+    sop = ds.get("SOPClassUID") or (ds.file_meta.get("MediaStorageSOPClassUID") if hasattr(ds, "file_meta") else None)
+    name = getattr(pydicom.uid.UID(str(sop)), "name", "") if sop else ""
+    return bool(name) and "Image Storage" not in name and any(word in name for word in NON_IMAGE_CLASSES)
 
 
 def is_image_storage(ds: pydicom.Dataset) -> bool:
@@ -131,24 +153,30 @@ def decode_frames(
         if is_image_storage(ds):
             raise InputError(f"{name} declares an image but holds no pixel data: the file is truncated or damaged; {_REMEDY_COPY}")
         raise InputError(f"{name} holds no pixel data (a report or structure?): give the image file itself")
-    samples = int_tag(ds, "SamplesPerPixel", name, 1)
-    photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip()
+    for keyword in ("SamplesPerPixel", "PhotometricInterpretation", "Rows", "Columns", "BitsAllocated", "BitsStored",
+                    "HighBit", "PixelRepresentation"):  # Type 1 attributes of the Image Pixel module
+        if raw_tag(ds, keyword) is None:
+            raise InputError(f"{name} has no {keyword}, which every image must have: the file is truncated or damaged; {_REMEDY_COPY}")
+    if not hasattr(ds, "file_meta") or raw_tag(ds.file_meta, "TransferSyntaxUID") is None:
+        raise InputError(f"{name} has no TransferSyntaxUID in its file meta information: the file is damaged; {_REMEDY_COPY}")
+    samples = int_tag(ds, "SamplesPerPixel", name)
+    photometric = str(ds.get("PhotometricInterpretation")).strip()
     if samples != 1 or photometric not in ("MONOCHROME1", "MONOCHROME2"):
         raise InputError(f"{name} is a colour image (SamplesPerPixel {samples}, {photometric}): export it as greyscale")
     rows, cols = int_tag(ds, "Rows", name), int_tag(ds, "Columns", name)
     n = int_tag(ds, "NumberOfFrames", name, 1)
     check_shape((n, rows, cols))
     allocated = int_tag(ds, "BitsAllocated", name)
-    stored = int_tag(ds, "BitsStored", name, allocated)
-    signed = int_tag(ds, "PixelRepresentation", name, 0)
+    stored = int_tag(ds, "BitsStored", name)
+    signed = int_tag(ds, "PixelRepresentation", name)
     if allocated not in (8, 16, 32) or not 1 <= stored <= allocated or signed not in (0, 1):
         raise InputError(f"{name} has BitsAllocated {allocated}, BitsStored {stored}, PixelRepresentation {signed}: "
                          f"not a greyscale image this reader knows (8/16/32 bits); the header is damaged or {_REMEDY_DECOMPRESS}")
-    high = int_tag(ds, "HighBit", name, stored - 1)
+    high = int_tag(ds, "HighBit", name)
     if high != stored - 1:
         raise InputError(f"{name} has HighBit {high} with BitsStored {stored}: only HighBit = BitsStored - 1 is read; "
                          "the header is damaged or the file needs conversion (gdcmconv --raw)")
-    syntax = U.UID(str(ds.file_meta.get("TransferSyntaxUID", U.ImplicitVRLittleEndian))) if hasattr(ds, "file_meta") else U.ImplicitVRLittleEndian
+    syntax = U.UID(str(ds.file_meta.TransferSyntaxUID))
     data = ds.PixelData
     if not isinstance(data, (bytes, bytearray)):
         raise InputError(f"{name}: the pixel data element is damaged; {_REMEDY_COPY}")

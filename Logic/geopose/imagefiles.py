@@ -221,6 +221,13 @@ def _int_list(path: Path, key: str, text: str) -> list[int]:
         raise InputError(f"{path.name} has a damaged '{key}' field ({text[:40]!r}); {_REMEDY}") from None
 
 
+def _require_files(header: Path, files: list[Path]) -> None:
+    missing = [f.name for f in files if not f.is_file()]
+    if missing:
+        raise InputError(f"{header.name} names data file(s) that do not exist ({', '.join(missing[:3])}): keep the data files "
+                         "next to the header, or check its data-file field")
+
+
 def _check_counts(path: Path, fields: dict[str, str], counts: dict[str, int]) -> None:
     """Each present numeric field holds exactly ``counts[key]`` finite numbers."""
     for key, n in counts.items():
@@ -285,6 +292,7 @@ def _nrrd(path: Path, max_voxels: int) -> DeclaredImage:
     expected = math.prod(shape) * dtype.itemsize
     spec = fields.get("data file", fields.get("datafile"))
     files = [path] if spec is None else _data_files(path, spec, rest, "data file")
+    _require_files(path, files)
     byte_skip = _int_list(path, "byte skip", fields.get("byte skip", "0"))[0]
     line_skip = _int_list(path, "line skip", fields.get("line skip", "0"))[0]
     checks = [f"NRRD ({encoding}): byte count and finite values checked"]
@@ -371,6 +379,7 @@ def _metaimage(path: Path, max_voxels: int) -> DeclaredImage:
             f.seek(start)
             rest = f.read(_MAX_HEADER_BYTES).decode("latin-1").split()
         files = [path.parent / name for name in rest]
+    _require_files(path, files)
     header_size = _int_list(path, "HeaderSize", fields.get("headersize", "0"))[0]
     compressed = fields.get("compresseddata", "false").lower() == "true"
     if compressed:

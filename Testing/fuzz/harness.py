@@ -150,10 +150,12 @@ def run_cases(
     workers: int = 2,
     timeout_s: float = 30.0,
     memory_bytes: int = 2 << 30,
+    cases_per_worker: int = 250,
     progress: Callable[[int], None] | None = None,
 ) -> Report:
     """Run ``case(i)`` for every index in forked workers. ``case`` returns ``(target, mutation, outcome,
-    detail)``; ``describe(i)`` names a case's target and mutation when its worker hangs or crashes."""
+    detail)``; ``describe(i)`` names a case's target and mutation when its worker hangs or crashes. A worker
+    is replaced after ``cases_per_worker`` cases, so what native code leaks does not add up to a memory error."""
     ctx = multiprocessing.get_context("fork")
     queue = list(indices)
     lock = threading.Lock()
@@ -166,13 +168,30 @@ def run_cases(
         child.close()
         return proc, parent
 
+    def stop(proc, conn) -> None:
+        try:
+            conn.send(None)
+        except (BrokenPipeError, OSError):
+            pass
+        proc.join(timeout=10)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+        conn.close()
+
     def lane() -> None:
         proc, conn = spawn()
+        served = 0
         while True:
             with lock:
                 if not queue:
                     break
                 index = queue.pop(0)
+            if served >= cases_per_worker:
+                stop(proc, conn)
+                proc, conn = spawn()
+                served = 0
+            served += 1
             start = time.perf_counter()
             conn.send(index)
             result, outcome = None, "hang"
@@ -190,18 +209,12 @@ def run_cases(
                 result = CaseResult(index, target, mutation, outcome, f"exit code {proc.exitcode}", time.perf_counter() - start)
                 conn.close()
                 proc, conn = spawn()
+                served = 0
             with lock:
                 report.results.append(result)
                 if progress:
                     progress(len(report.results))
-        try:
-            conn.send(None)
-        except (BrokenPipeError, OSError):
-            pass
-        proc.join(timeout=10)
-        if proc.is_alive():
-            proc.kill()
-            proc.join()
+        stop(proc, conn)
 
     threads = [threading.Thread(target=lane) for _ in range(max(1, workers))]
     for t in threads:

@@ -24,7 +24,7 @@ import numpy as np
 import pydicom
 
 from .. import limits as L
-from ..dicomio import decode_frames, floats_tag, is_image_storage, read_dataset
+from ..dicomio import decode_frames, floats_tag, is_non_image, looks_like_dicom, read_dataset
 from ..errors import InputError
 
 __all__ = ["read_dicom_series"]
@@ -34,20 +34,21 @@ TILT_OFFSET_MM = 0.01
 
 
 def _series_headers(folder: Path) -> dict[str, list[tuple[Path, pydicom.Dataset]]]:
-    """Image headers of ``folder`` grouped by SeriesInstanceUID; non-DICOM files are skipped."""
+    """Image headers of ``folder`` grouped by SeriesInstanceUID. Files that are not meant to be DICOM
+    (a README) and DICOM files of a known non-image class are skipped; a DICOM file that cannot be read
+    or has no image is refused (a slice dropped silently would shift the whole volume)."""
     series: dict[str, list[tuple[Path, pydicom.Dataset]]] = {}
     for f in sorted(p for p in folder.iterdir() if p.is_file()):
         try:
             ds = read_dataset(f, stop_before_pixels=True)
         except InputError as exc:
-            if "is not a DICOM file" in str(exc):
+            if "is not a DICOM file" in str(exc) and not looks_like_dicom(f):
                 continue
             raise
         if "Rows" in ds or "PixelData" in ds or "ImagePositionPatient" in ds:
             series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((f, ds))
-        elif is_image_storage(ds):
-            raise InputError(f"{f.name} is a DICOM image file without its image data: it is truncated or damaged; "
-                             "copy the series again")
+        elif not is_non_image(ds):
+            raise InputError(f"{f.name} is a DICOM file without image data: it is truncated or damaged; copy the series again")
     return series
 
 

@@ -40,7 +40,7 @@ import SimpleITK as sitk
 
 from .. import limits as L
 from ..checksums import file_sha256
-from ..dicomio import decode_frames, float_tag, floats_tag, int_tag, raw_tag, read_dataset
+from ..dicomio import decode_frames, float_tag, floats_tag, int_tag, looks_like_dicom, raw_tag, read_dataset
 from ..errors import InputError
 from ..geometry.detector import CArmAngles, Detector
 from ..imagefiles import IMAGE_EXTENSIONS, check_image_file, image_extension
@@ -284,13 +284,14 @@ def _dicom_time_s(ds: pydicom.Dataset) -> float | None:
 
 
 def _dicom_headers(folder: Path) -> list[tuple[Path, pydicom.Dataset]]:
-    """(file, header) of every DICOM file of ``folder``; other files are skipped, damaged DICOM files refused."""
+    """(file, header) of every DICOM file of ``folder``; files not meant to be DICOM are skipped, damaged
+    DICOM files refused (a frame dropped silently would change the run)."""
     headers = []
     for f in sorted(p for p in folder.iterdir() if p.is_file()):
         try:
             headers.append((f, read_dataset(f, stop_before_pixels=True)))
         except InputError as exc:
-            if "is not a DICOM file" not in str(exc):
+            if "is not a DICOM file" not in str(exc) or looks_like_dicom(f):
                 raise
     return headers
 
