@@ -2,7 +2,8 @@
 
 Cases are numbered; case ``i`` of seed ``s`` draws everything from ``numpy.random.default_rng([s, i])``,
 so a run is reproducible case by case. Each case runs in a forked worker process with an
-address-space limit (``RLIMIT_AS``: the worker's size at fork plus ``memory_bytes``) and a
+address-space limit (soft ``RLIMIT_AS``: the worker's size at fork plus ``memory_bytes``; verification
+code lifts it with :func:`unlimited_memory`) and a
 wall-clock timeout; a worker that dies is a *crash*, one that overruns is a *hang*, and either
 is replaced by a fresh fork. The case function returns ``(outcome, detail)``; an exception
 escaping it is recorded as ``other exception``.
@@ -10,6 +11,7 @@ escaping it is recorded as ``other exception``.
 
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import multiprocessing
 import os
@@ -25,7 +27,7 @@ import numpy as np
 
 __all__ = [
     "OUTCOMES", "FAILURES", "CaseResult", "Report", "run_cases",
-    "flip_bits", "truncate", "splice_bytes", "interesting_number",
+    "flip_bits", "truncate", "splice_bytes", "interesting_number", "unlimited_memory",
 ]
 
 #: Outcome classes, in table order.
@@ -120,7 +122,18 @@ def _limit_memory(memory_bytes: int) -> None:
     except (OSError, StopIteration):
         size_kb = 0
     limit = size_kb * 1024 + memory_bytes
-    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    resource.setrlimit(resource.RLIMIT_AS, (limit, resource.getrlimit(resource.RLIMIT_AS)[1]))
+
+
+@contextlib.contextmanager
+def unlimited_memory():
+    """Lift the worker's (soft) memory limit for code that checks a result, not the code under test."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (hard, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
 
 
 def _worker(conn, case: Callable[[int], tuple[str, str, str, str]], describe: Callable[[int], tuple[str, str]],
