@@ -15,7 +15,7 @@ from .errors import InputError
 
 __all__ = [
     "REFINE_STEPS", "ITERATIONS", "TTO_PX", "RENDER_PX", "WORK_SPACING_MM", "CLIP_PERCENTILE",
-    "CTA_VOXEL_SIZE_MM", "CTA_EXTENT_MM", "CTA_VOXELS_PER_AXIS", "CTA_MAX_VOXELS", "HU_OFFSET",
+    "CTA_VOXEL_SIZE_MM", "CTA_EXTENT_MM", "CTA_VOXELS_PER_AXIS", "CTA_MAX_VOXELS", "CTA_AIR_MAX_HU", "CTA_MIN_SPAN_HU", "HU_OFFSET",
     "SLICE_GAP_TOLERANCE", "SLICE_GAP_TOLERANCE_MM", "SLICE_ORIENTATION_TOLERANCE",
     "DSA_MATRIX_PX", "DSA_FRAMES", "DSA_MAX_PIXELS", "ANGLE_INPUT_DEG", "PRIMARY_DEG", "SECONDARY_DEG",
     "SID_MM", "SOD_MM", "PIXEL_SPACING_MM", "PRINCIPAL_OFFSET_MM", "FRAME_TIME_MS",
@@ -47,6 +47,10 @@ CTA_EXTENT_MM: Final = (20.0, 2000.0)
 CTA_VOXELS_PER_AXIS: Final = (8, 4096)
 #: Voxels in all (2**30: 4 GiB as float32), checked on the header before any voxel is read.
 CTA_MAX_VOXELS: Final = 2**30
+#: A CT of a head in HU contains air: its minimum lies below this value (HU).
+CTA_AIR_MAX_HU: Final = -200.0
+#: A value span (HU) this small suggests a normalised (e.g. 0..1) image, not HU.
+CTA_MIN_SPAN_HU: Final = 2.0
 #: ``hu_offset`` (HU) added to a CTA's stored values.
 HU_OFFSET: Final = (-4096.0, 4096.0)
 #: Slice gaps of a DICOM series count as even when within this fraction of their median...

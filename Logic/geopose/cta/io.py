@@ -34,10 +34,6 @@ __all__ = [
 
 #: File name endings ``load_cta`` reads (a folder is read as a DICOM series).
 CTA_EXTENSIONS = IMAGE_EXTENSIONS
-#: A CT of a head in HU contains air: its minimum lies below this value.
-HU_AIR_UPPER = -200.0
-#: A value span this small suggests a normalised (e.g. 0..1) image, not HU.
-NORMALISED_SPAN = 2.0
 #: Extra spatial tolerance for slightly non-orthonormal directions when saving.
 _ORTHONORMAL_TOL = 1e-4
 
@@ -198,7 +194,7 @@ def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True
         raise InputError(f"{name} is constant ({lo:g} everywhere): the file holds no image; check the export")
     if not check_hu:
         return
-    if hi - lo <= NORMALISED_SPAN:
+    if hi - lo <= L.CTA_MIN_SPAN_HU:
         raise InputError(
             f"{name} has values in [{lo:g}, {hi:g}]: this looks like a normalised image, not Hounsfield units; "
             "use the original CT in HU"
@@ -209,7 +205,7 @@ def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True
             "stores raw CT numbers without the -1024 offset: load it with hu_offset=-1024 (CLI: --hu-offset -1024) "
             "or fix the rescale intercept; if it is not a CT (e.g. MR), it cannot be used"
         )
-    if lo > HU_AIR_UPPER:
+    if lo > L.CTA_AIR_MAX_HU:
         raise InputError(
             f"{name} has minimum {lo:g}: a head CT in HU contains air (about -1000 HU) around the head; "
             "check the rescale (hu_offset) or use an uncropped CT"
