@@ -241,6 +241,13 @@ def _check_counts(path: Path, fields: dict[str, str], counts: dict[str, int]) ->
             raise InputError(f"{path.name} has a damaged '{key}' field ({fields[key][:60]!r}; {n} finite numbers expected); {_REMEDY}")
 
 
+def _one_int(path: Path, key: str, text: str) -> int:
+    values = _int_list(path, key, text)
+    if len(values) != 1:
+        raise InputError(f"{path.name} has a damaged '{key}' field ({text[:40]!r}, not one whole number); {_REMEDY}")
+    return values[0]
+
+
 def _data_files(header: Path, spec: str, rest: list[str], what: str) -> list[Path]:
     """Files of a detached header's data-file field: one name, ``LIST`` (names follow) or a pattern ``fmt min max step``."""
     parts = spec.split()
@@ -293,8 +300,8 @@ def _nrrd(path: Path, max_voxels: int) -> DeclaredImage:
     spec = fields.get("data file", fields.get("datafile"))
     files = [path] if spec is None else _data_files(path, spec, rest, "data file")
     _require_files(path, files)
-    byte_skip = _int_list(path, "byte skip", fields.get("byte skip", "0"))[0]
-    line_skip = _int_list(path, "line skip", fields.get("line skip", "0"))[0]
+    byte_skip = _one_int(path, "byte skip", fields.get("byte skip", "0"))
+    line_skip = _one_int(path, "line skip", fields.get("line skip", "0"))
     checks = [f"NRRD ({encoding}): byte count and finite values checked"]
     if encoding in ("ascii", "txt", "text", "hex"):
         return DeclaredImage(shape, dtype, [path] + ([] if spec is None else files), [f"NRRD ({encoding}): not checked"])
@@ -338,6 +345,13 @@ _MET_TYPES = {"MET_CHAR": "i1", "MET_UCHAR": "u1", "MET_SHORT": "i2", "MET_USHOR
               "MET_DOUBLE": "f8"}
 
 
+#: MetaIO keys read here (exact case) -> the lower-case name used below.
+_MET_KEYS = {k: k.lower() for k in (
+    "NDims", "DimSize", "ElementType", "ElementDataFile", "ElementSpacing", "ElementSize", "Offset", "Position", "Origin",
+    "CenterOfRotation", "TransformMatrix", "Rotation", "Orientation", "ElementNumberOfChannels", "HeaderSize",
+    "CompressedData", "CompressedDataSize", "BinaryDataByteOrderMSB", "ElementByteOrderMSB")}
+
+
 def _mha_end(head: bytes) -> int | None:
     m = re.search(rb"^[ \t]*ElementDataFile[ \t]*=[^\n]*\n", head, flags=re.MULTILINE)
     return m.end() if m else None
@@ -347,9 +361,10 @@ def _metaimage(path: Path, max_voxels: int) -> DeclaredImage:
     text, start = _header_bytes(path, _mha_end, "MetaImage")
     fields: dict[str, str] = {}
     for line in text.decode("latin-1").splitlines():
-        if "=" in line:
+        if "=" in line:  # MetaIO keys are case-sensitive: a damaged key is an unknown one
             key, value = line.split("=", 1)
-            fields[key.strip().lower()] = value.strip()
+            if key.strip() in _MET_KEYS:
+                fields[_MET_KEYS[key.strip()]] = value.strip()
     for key in ("ndims", "dimsize", "elementtype", "elementdatafile"):
         if key not in fields:
             raise InputError(f"{path.name} has no '{key}' field: the MetaImage header is damaged; {_REMEDY}")
@@ -366,28 +381,30 @@ def _metaimage(path: Path, max_voxels: int) -> DeclaredImage:
         raise InputError(f"{path.name} has ElementType {fields['elementtype']!r}, not a voxel type read here; {_REMEDY}")
     big = fields.get("binarydatabyteordermsb", fields.get("elementbyteordermsb", "false")).lower() == "true"
     dtype = np.dtype((">" if big else "<") + code)
-    channels = _int_list(path, "ElementNumberOfChannels", fields.get("elementnumberofchannels", "1"))[0]
+    channels = _one_int(path, "ElementNumberOfChannels", fields.get("elementnumberofchannels", "1"))
     if channels < 1:
         raise InputError(f"{path.name} declares {channels} channels; the header is damaged; {_REMEDY}")
     expected = math.prod(shape) * dtype.itemsize * channels
     spec = fields["elementdatafile"]
     local = spec.upper() == "LOCAL"
-    rest = text.decode("latin-1").splitlines()  # a LIST's names follow the header in a detached .mhd
-    files = [path] if local else _data_files(path, spec, [], "ElementDataFile")
-    if not local and spec.split()[0].upper() == "LIST":
+    names: list[str] = []
+    if not local and spec.split()[:1] == ["LIST"]:  # the names follow the header line
         with open(path, "rb") as f:
             f.seek(start)
-            rest = f.read(_MAX_HEADER_BYTES).decode("latin-1").split()
-        files = [path.parent / name for name in rest]
+            names = f.read(_MAX_HEADER_BYTES).decode("latin-1").split()
+    files = [path] if local else _data_files(path, spec, names, "ElementDataFile")
     _require_files(path, files)
-    header_size = _int_list(path, "HeaderSize", fields.get("headersize", "0"))[0]
+    header_size = _one_int(path, "HeaderSize", fields.get("headersize", "0"))
+    if local and header_size:
+        raise InputError(f"{path.name} has HeaderSize {header_size} with its data in the file (LOCAL): not read here; "
+                         f"the header is damaged; {_REMEDY}")
     compressed = fields.get("compresseddata", "false").lower() == "true"
     if compressed:
         if len(files) != 1:
             raise InputError(f"{path.name}: compressed MetaImage data in several files is not read here; {_REMEDY}")
         size = _int_list(path, "CompressedDataSize", fields.get("compresseddatasize", ""))
         available = files[0].stat().st_size - (start if local else max(header_size, 0))
-        if len(size) != 1 or size[0] != available:
+        if size != [available]:
             raise InputError(f"{path.name} declares CompressedDataSize {fields.get('compresseddatasize', '')!r} but holds "
                              f"{available} compressed bytes: the file is truncated or its header damaged; {_REMEDY}")
 

@@ -56,6 +56,18 @@ def fuzz(cases: int, seed: int, workers: int, timeout_s: float, memory_bytes: in
         )
 
 
+def _faithful_table(report: harness.Report) -> str:
+    kinds = ("flip", "flip_header", "truncate", "field")
+    counts: dict[str, dict[str, int]] = {}
+    for r in report.results:
+        if r.outcome == "accepted, faithful":
+            row = counts.setdefault(r.target, dict.fromkeys(kinds, 0))
+            row[r.mutation.split(":")[0]] += 1
+    lines = ["| target | " + " | ".join(kinds) + " |", "|---|" + "---:|" * len(kinds)]
+    lines += [f"| {t} | " + " | ".join(str(counts[t][k]) for k in kinds) + " |" for t in sorted(counts)]
+    return "\n".join(lines)
+
+
 def document(report: harness.Report, command: str, seconds: float) -> str:
     failures = report.failures()
     lines = [
@@ -84,6 +96,11 @@ def document(report: harness.Report, command: str, seconds: float) -> str:
         "OpenJPEG are re-encoded and compared, so only flips that re-encode to themselves pass. "
         "**accepted, WRONG**, **other exception** (a traceback), **out of memory**, **hang** and **crash** are "
         "failures.",
+        "",
+        "Accepted, faithful cases by mutation kind (`flip`: anywhere, mostly pixel/voxel data; `flip_header`: "
+        "in the header; `field`: a header value set on purpose, e.g. another angle):",
+        "",
+        _faithful_table(report),
         "",
         f"Failures: {len(failures)}.",
     ]

@@ -441,10 +441,15 @@ def _nifti_field(data: bytes, rng: np.random.Generator, gz: bool) -> tuple[bytes
     return (gzip.compress(raw) if gz else raw), f"{name}[{k}] = {values[k]!r}"
 
 
-def _text_field(data: bytes, rng: np.random.Generator, keys: tuple[str, ...], sep: str) -> tuple[bytes, str]:
-    head_end = data.find(b"\n\n") if sep == ":" else data.find(b"ElementDataFile")
+def _text_field(data: bytes, rng: np.random.Generator, keys: tuple[str, ...], sep: str, extra: tuple[str, ...] = ()) -> tuple[bytes, str]:
+    """Damage one field of a NRRD/MetaImage text header (or, one time in five, add one of ``extra`` with a value)."""
+    head_end = data.find(b"\n\n") if sep == ":" else data.find(b"\n", data.find(b"ElementDataFile"))
     head = data[: head_end if head_end > 0 else 400].decode("latin-1")
     lines = head.split("\n")
+    if extra and rng.random() < 0.2:
+        field = str(rng.choice(list(extra))) + str(rng.choice(["-1", "0", "1", "5", "1000000", "abc", "LIST", "x.raw", ""]))
+        lines.insert(max(1, len(lines) - 2), field)
+        return "\n".join(lines).encode("latin-1") + data[len(head):], f"add {field!r}"
     candidates = [i for i, line in enumerate(lines) if any(line.lower().startswith(k.lower()) for k in keys)]
     if not candidates:
         return data, "no field"
@@ -548,10 +553,13 @@ def run_case(seed: int, index: int, root: Path, originals: dict, work: Path) -> 
             if target in ("cta_nii", "cta_nii_gz"):
                 data, detail = _nifti_field(data, rng, target == "cta_nii_gz")
             elif target == "cta_nrrd":
-                data, detail = _text_field(data, rng, ("type", "dimension", "sizes", "space directions", "endian", "encoding", "space origin"), ":")
+                data, detail = _text_field(data, rng, ("type", "dimension", "sizes", "space directions", "endian", "encoding", "space origin",
+                                                       "kinds", "space"), ":", extra=("byte skip: ", "line skip: ", "data file: "))
             else:
                 data, detail = _text_field(data, rng, ("NDims", "DimSize", "ElementSpacing", "ElementType", "Offset", "TransformMatrix",
-                                                       "CompressedData", "BinaryDataByteOrderMSB", "HeaderSize"), " =")
+                                                       "CompressedData", "CompressedDataSize", "BinaryDataByteOrderMSB", "HeaderSize",
+                                                       "ElementNumberOfChannels", "ElementDataFile"), " =",
+                                           extra=("HeaderSize = ", "ElementNumberOfChannels = "))
         else:
             header_end = {"cta_nii": 352, "cta_nii_gz": len(data), "cta_nrrd": data.find(b"\n\n") + 2,
                           "cta_mha": data.find(b"ElementDataFile")}[target]

@@ -160,7 +160,8 @@ def load_cta(path: str | Path, *, hu_offset: float = 0.0, series_uid: str | None
 def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True) -> None:
     """Raise :class:`InputError` unless ``volume`` looks like a 3D CT in HU.
 
-    Checks (bounds of :mod:`geopose.limits`): voxels per axis (``CTA_VOXELS_PER_AXIS``), voxel
+    Checks (bounds of :mod:`geopose.limits`): voxels per axis (``CTA_VOXELS_PER_AXIS``), a finite,
+    non-degenerate affine, voxel
     size (``CTA_VOXEL_SIZE_MM``), extent (``CTA_EXTENT_MM``), finite voxels, not constant, and
     (``check_hu``) HU-like values: a span wider than a normalised image and a minimum below
     -200 HU (air).
@@ -169,6 +170,9 @@ def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True
     if not all(lo <= n <= hi for n in volume.shape_ijk):
         raise InputError(f"{name} has size {volume.shape_ijk} (i, j, k): a CTA has {lo}..{hi} voxels along each axis; "
                          "give the whole 3D stack (or check the header's dimensions)")
+    if not np.all(np.isfinite(volume.ijk_to_ras)) or abs(np.linalg.det(volume.ijk_to_ras[:3, :3])) < 1e-12:
+        raise InputError(f"{name} has a non-finite or degenerate position/orientation in its header "
+                         f"({np.round(volume.ijk_to_ras[:3], 4).tolist()}): fix the header's origin and direction (or re-export it)")
     spacing = np.asarray(volume.spacing_mm)
     vlo, vhi = L.CTA_VOXEL_SIZE_MM
     if not np.all(np.isfinite(spacing)) or np.any(spacing < vlo) or np.any(spacing > vhi):
