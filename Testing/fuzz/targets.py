@@ -45,7 +45,8 @@ from geopose.dsa import DSARun, read_dsa, write_dsa_dicom, write_dsa_nifti
 from geopose.dsa.readers import sidecar_path
 from geopose.errors import InputError
 from geopose.geometry import CArmAngles, Detector
-from geopose.limits import wrap_angle_deg, PRIMARY_DEG, SECONDARY_DEG
+from geopose.cta.dicom_series import TILT_OFFSET_MM
+from geopose.limits import PRIMARY_DEG, SECONDARY_DEG, SLICE_GAP_TOLERANCE, SLICE_GAP_TOLERANCE_MM, wrap_angle_deg
 from geopose.nets.manifest import MANIFEST_NAME, verify_models
 from geopose.volume import Volume
 
@@ -396,18 +397,27 @@ def _sitk_volume(path: Path) -> dict:
 
 
 def _ct_oracle(folder: Path, mutated: Path, original_root: Path, original: dict) -> dict:
-    """The series as the original, with the mutated slice's pixels as pydicom reads them; or, when the
-    mutated slice's position/orientation/spacing differ from its original, 'resampled' is the right answer."""
+    """The series as the original with the mutated slice's pixels as pydicom reads them. When the mutation moved
+    the slice (position, orientation, spacing) beyond the reader's tolerances, resampling is the right answer."""
     ds = pydicom.dcmread(mutated)
     before = pydicom.dcmread(original_root / "ct_series" / mutated.name)
-    for key in ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing"):
-        if [float(v) for v in ds.get(key, [])] != [float(v) for v in before.get(key, [])]:
-            return {"resampled_ok": True}
+    expected: dict[str, Any] = {}
+    moved = [np.asarray([float(v) for v in ds.get(key, [])]) - np.asarray([float(v) for v in before.get(key, [])])
+             if len(ds.get(key, [])) == len(before.get(key, [])) else None
+             for key in ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing")]
+    if any(m is None or np.any(m) for m in moved):
+        expected["resampled_ok"] = True
+        position, orientation, spacing = moved
+        gap_tol = max(SLICE_GAP_TOLERANCE_MM, SLICE_GAP_TOLERANCE * abs(original["affine"][2, 2]))  # of the 2 mm gaps
+        within = (position is not None and orientation is not None and spacing is not None and not np.any(orientation)
+                  and not np.any(spacing) and np.abs(position[:2]).max() <= TILT_OFFSET_MM and abs(position[2]) <= gap_tol)
+        if not within:
+            return expected
     k = int(mutated.stem.split("_")[1])
     array = original["array"].copy()
     plane = ds.pixel_array.astype(np.float32) * np.float32(float(ds.get("RescaleSlope", 1))) + np.float32(float(ds.get("RescaleIntercept", 0)))
     array[k] = plane
-    return {"array": array, "affine": original["affine"]}
+    return {**expected, "array": array, "affine": original["affine"]}
 
 
 # ------------------------------------------------------------------------ cases
