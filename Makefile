@@ -3,7 +3,7 @@ PY ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test test-slow bench clean
+.PHONY: setup demo test test-slow fuzz bench clean
 
 # Slicer 5.8's Python (3.9) with its pydicom 2.4.4, for Testing/Python/test_python39.py.
 PY39 ?= $(firstword $(wildcard $(shell pyenv root 2>/dev/null)/versions/3.9*/bin/python3.9) python3.9)
@@ -32,6 +32,12 @@ test: setup $(VENV39)/.installed
 
 test-slow: setup
 	GEOPOSE_SLOW=1 $(BIN)/python -m pytest -q
+
+# Input fuzz suite: 10,000 seeded mutations of every input kind (docs/fuzz.md); the default
+# test run does 600 of them (Testing/Python/test_fuzz.py).
+FUZZ_CASES ?= 10000
+fuzz: setup
+	nice -n 10 $(BIN)/python Testing/fuzz/run.py --cases $(FUZZ_CASES) --seed 0 --workers 2 --doc docs/fuzz.md
 
 clean:
 	rm -rf $(VENV) $(VENV39) demo_out

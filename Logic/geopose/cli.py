@@ -1,14 +1,22 @@
 """The ``geopose`` command line. Each sub-command lives beside the code it drives;
 this file only lists them (``module:register`` adds a sub-parser whose
-``func(args)`` runs it)."""
+``func(args)`` runs it).
+
+Errors: an :class:`~geopose.errors.InputError` prints its one line and exits with 2;
+any other exception prints one line naming it and the file the full traceback was
+written to, and exits with 1.
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+import tempfile
+import traceback
 
 from . import __version__
+from .errors import InputError
 
 #: (module, register-function) for every sub-command.
 COMMANDS: list[tuple[str, str]] = [
@@ -31,20 +39,35 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-class UserError(Exception):
-    """An error caused by the user's input; printed without a traceback."""
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _write_traceback(exc: BaseException) -> str:
+    """Write ``exc``'s full traceback to a new temporary file; its path (or why none could be written)."""
+    try:
+        with tempfile.NamedTemporaryFile("w", prefix="geopose-traceback-", suffix=".txt", delete=False) as handle:
+            traceback.print_exception(type(exc), exc, exc.__traceback__, file=handle)
+            return handle.name
+    except OSError as error:
+        return f"<not written: {error.strerror or error}>"
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (UserError, FileNotFoundError, ValueError) as exc:
-        print(f"geopose {args.command}: error: {exc}", file=sys.stderr)
+    except InputError as exc:
+        print(f"geopose {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # an internal error: one line here, the traceback in a file
+        where = _write_traceback(exc)
+        print(f"geopose {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)} "
+              f"(full traceback in {where}; please report it)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from .errors import InputError
 
 __all__ = ["resources_dir", "default_models_dir"]
 
@@ -18,7 +19,7 @@ def resources_dir() -> Path:
     for c in candidates:
         if c.is_dir():
             return c
-    raise FileNotFoundError(
+    raise InputError(
         "GeoPose resources not found (looked in " + ", ".join(str(c) for c in candidates) + "): "
         "set GEOPOSE_RESOURCES to the extension's Resources folder"
     )

@@ -13,8 +13,9 @@ import SimpleITK as sitk
 from pydicom.dataset import FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
-from geopose.cta import CTAInputError, cranium_mask_from_cta, load_cta, save_volume, vessel_mask_from_cta
+from geopose.cta import cranium_mask_from_cta, load_cta, save_volume, vessel_mask_from_cta
 from geopose.volume import Volume
+from geopose.errors import InputError
 
 HEADSQ_OFFSET_HU = -1024.0  # the headsq MetaImage header stores raw values: HU = value - 1024
 
@@ -29,7 +30,7 @@ def _rotation(ax: float, ay: float, az: float) -> np.ndarray:
 
 def _oblique_volume(dtype=np.float32) -> Volume:
     rng = np.random.default_rng(0)
-    array = rng.normal(0, 300, size=(7, 9, 11)).astype(dtype)
+    array = rng.normal(0, 300, size=(10, 24, 36)).astype(dtype)
     array[0, 0, 0] = -1000
     aff = np.eye(4)
     aff[:3, :3] = _rotation(0.3, -0.2, 0.7) @ np.diag([0.6, 0.9, 2.5])
@@ -54,7 +55,7 @@ def _filled_head(volume: Volume) -> np.ndarray:
 
 
 def test_headsq_without_offset_is_rejected_with_remedy(shared_data: Path):
-    with pytest.raises(CTAInputError, match="hu_offset=-1024"):
+    with pytest.raises(InputError, match="hu_offset=-1024"):
         load_cta(shared_data / "headsq" / "quarter_sidecar.mhd")
 
 
@@ -156,14 +157,14 @@ def test_cranium_mask_needs_bone():
 
 
 def test_lps_header_becomes_ras_affine(tmp_path: Path):
-    image = sitk.GetImageFromArray(np.linspace(-1000, 1000, 4 * 5 * 6, dtype=np.float32).reshape(4, 5, 6))
+    image = sitk.GetImageFromArray(np.linspace(-1000, 1000, 12 * 30 * 44, dtype=np.float32).reshape(12, 30, 44))
     image.SetSpacing((0.5, 0.8, 2.0))
     image.SetOrigin((10.0, -20.0, 30.0))
     image.SetDirection(tuple(_rotation(0.1, 0.4, -0.3).ravel()))
     path = tmp_path / "ct.mha"
     sitk.WriteImage(image, str(path))
     vol = load_cta(path)
-    for ijk in [(0, 0, 0), (5, 0, 0), (2, 3, 1), (5, 4, 3)]:
+    for ijk in [(0, 0, 0), (5, 0, 0), (2, 3, 1), (39, 29, 11)]:
         lps = np.array(image.TransformIndexToPhysicalPoint(ijk))
         ras = (vol.ijk_to_ras @ np.append(ijk, 1.0))[:3]
         np.testing.assert_allclose(ras, lps * (-1, -1, 1), atol=1e-9)
@@ -194,9 +195,9 @@ def test_save_keeps_label_type(tmp_path: Path):
 def test_save_rejects_shear_and_unknown_format(tmp_path: Path):
     vol = _oblique_volume()
     sheared = Volume(vol.array, vol.ijk_to_ras @ np.array([[1, 0.3, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]))
-    with pytest.raises(CTAInputError, match="sheared"):
+    with pytest.raises(InputError, match="sheared"):
         save_volume(sheared, tmp_path / "s.nii.gz")
-    with pytest.raises(CTAInputError, match=r"\.nrrd"):
+    with pytest.raises(InputError, match=r"\.nrrd"):
         save_volume(vol, tmp_path / "s.png")
 
 
@@ -232,7 +233,7 @@ def _write_ct_series(folder: Path, hu: np.ndarray, spacing=(0.7, 0.6, 2.0), orig
 
 def test_dicom_series_in_hu_with_lps_geometry(tmp_path: Path):
     rng = np.random.default_rng(1)
-    hu = rng.integers(-1024, 2000, size=(6, 10, 12)).astype(np.int16)
+    hu = rng.integers(-1024, 2000, size=(12, 40, 36)).astype(np.int16)
     _write_ct_series(tmp_path / "ct", hu)
     vol = load_cta(tmp_path / "ct")
     np.testing.assert_array_equal(vol.array, hu.astype(np.float32))
@@ -240,20 +241,21 @@ def test_dicom_series_in_hu_with_lps_geometry(tmp_path: Path):
     # DICOM ImagePositionPatient is LPS: the first voxel sits at RAS (90, 100, 50)
     np.testing.assert_allclose(vol.ijk_to_ras[:3, 3], (90.0, 100.0, 50.0), atol=1e-6)
     np.testing.assert_allclose(vol.ijk_to_ras[:3, :3], np.diag((-0.7, -0.6, 2.0)), atol=1e-6)
-    assert vol.metadata["source_files"] == 6
+    assert vol.metadata["source_files"] == 12
+    assert vol.metadata["slice_geometry"]["resampled"] is False
 
 
 def test_dicom_folder_with_two_series_needs_a_choice(tmp_path: Path):
-    hu = np.full((3, 4, 4), -1000, np.int16)
+    hu = np.full((12, 36, 36), -1000, np.int16)
     hu[1, 1, 1] = 500
     uid = generate_uid()
     _write_ct_series(tmp_path / "mixed", hu, series_uid=uid)
     _write_ct_series(tmp_path / "mixed2", hu)
     for f in (tmp_path / "mixed2").iterdir():
         f.rename(tmp_path / "mixed" / ("b_" + f.name))
-    with pytest.raises(CTAInputError, match="series_uid"):
+    with pytest.raises(InputError, match="series_uid"):
         load_cta(tmp_path / "mixed")
-    assert load_cta(tmp_path / "mixed", series_uid=uid).array.shape == (3, 4, 4)
+    assert load_cta(tmp_path / "mixed", series_uid=uid).array.shape == (12, 36, 36)
 
 
 # ------------------------------------------------------------------ bad input
@@ -261,8 +263,7 @@ def test_dicom_folder_with_two_series_needs_a_choice(tmp_path: Path):
 
 def _write(tmp_path: Path, array: np.ndarray, spacing=None, name="x.nii.gz", vector=False) -> Path:
     image = sitk.GetImageFromArray(array, isVector=vector)
-    if spacing is not None:
-        image.SetSpacing(spacing)
+    image.SetSpacing(spacing if spacing is not None else (2.0,) * image.GetDimension())
     path = tmp_path / name
     sitk.WriteImage(image, str(path))
     return path
@@ -279,7 +280,7 @@ def _write_mhd(tmp_path: Path, spacing: str) -> Path:
     return tmp_path / "z.mhd"
 
 
-def _ct(shape=(5, 6, 7)) -> np.ndarray:
+def _ct(shape=(12, 24, 28)) -> np.ndarray:
     a = np.zeros(shape, np.float32)
     a[0] = -1000
     a[-1] = 1200
@@ -292,32 +293,33 @@ def _ct(shape=(5, 6, 7)) -> np.ndarray:
         (lambda p: _write(p, _ct()[0]), "2D image"),
         (lambda p: _write(p, np.stack([_ct(), _ct()])), "4D"),
         (lambda p: _write(p, np.stack([_ct()] * 3, axis=-1), vector=True, name="x.mha"), "components per voxel"),
-        (lambda p: _write(p, _ct()[:1]), "at least 2 voxels"),
+        (lambda p: _write(p, _ct()[:1]), "voxels along each axis"),
+        (lambda p: _write(p, _ct((4, 4, 4))), "voxels along each axis"),
         (lambda p: _write(p, np.where(_ct() > 1000, np.nan, _ct()).astype(np.float32), name="x.mha"), "NaN"),
-        (lambda p: _write(p, np.full((4, 4, 4), -1000, np.float32)), "constant"),
-        (lambda p: _write(p, _ct(), spacing=(1.0, 1.0, 12.0)), "voxel size"),
+        (lambda p: _write(p, np.full((12, 24, 28), -1000, np.float32)), "constant"),
+        (lambda p: _write(p, _ct(), spacing=(2.0, 2.0, 12.0)), "voxel size"),
         (lambda p: _write_mhd(p, "1 0 1"), "voxel size"),
-        (lambda p: _write(p, np.linspace(0, 1, 60, dtype=np.float32).reshape(3, 4, 5)), "normalised"),
+        (lambda p: _write(p, np.linspace(0, 1, 12 * 24 * 28, dtype=np.float32).reshape(12, 24, 28)), "normalised"),
         (lambda p: _write(p, _ct() + 1024), "hu_offset=-1024"),
         (lambda p: _write(p, _ct() * 0.05), "air"),
     ],
 )
 def test_invalid_images_raise_clear_errors(tmp_path: Path, make, pattern):
-    with pytest.raises(CTAInputError, match=pattern):
+    with pytest.raises(InputError, match=pattern):
         load_cta(make(tmp_path))
 
 
 def test_missing_unknown_and_corrupt_files(tmp_path: Path):
-    with pytest.raises(CTAInputError, match="not found"):
+    with pytest.raises(InputError, match="not found"):
         load_cta(tmp_path / "nope.nii.gz")
     (tmp_path / "ct.png").write_bytes(b"\x89PNG")
-    with pytest.raises(CTAInputError, match="unknown CTA format"):
+    with pytest.raises(InputError, match="unknown CTA format"):
         load_cta(tmp_path / "ct.png")
     (tmp_path / "bad.nii.gz").write_bytes(b"this is not a NIfTI file at all" * 10)
-    with pytest.raises(CTAInputError, match="cannot read"):
+    with pytest.raises(InputError, match="cannot read"):
         load_cta(tmp_path / "bad.nii.gz")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(CTAInputError, match="no DICOM series"):
+    with pytest.raises(InputError, match="no DICOM series"):
         load_cta(tmp_path / "empty")
 
 

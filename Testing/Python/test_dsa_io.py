@@ -19,7 +19,6 @@ from pydicom.uid import JPEG2000Lossless, JPEGLSLossless, RLELossless, XRayAngio
 
 from geopose import contract as C
 from geopose.dsa import (
-    DSAInputError,
     DSARun,
     geometry_override_args,
     geometry_overrides_from_args,
@@ -29,6 +28,7 @@ from geopose.dsa import (
     write_dsa_nifti,
 )
 from geopose.geometry import CArmAngles, Detector
+from geopose.errors import InputError
 
 SAMPLE_OVERRIDES = {"sid_mm": 1100.0, "sod_mm": 750.0, "pixel_spacing_mm": (0.35, 0.35)}
 
@@ -62,12 +62,13 @@ def sample(shared_data: Path) -> Path:
 
 
 def test_sample_without_geometry_names_every_missing_tag(sample: Path):
-    with pytest.raises(DSAInputError) as info:
+    with pytest.raises(InputError) as info:
         read_dsa(sample)
     msg = str(info.value)
-    assert "DistanceSourceToDetector (0018,1110) is missing in rubo_0002_xa_multiframe.dcm: pass sid_mm=... (CLI: --sid-mm" in msg
-    assert "DistanceSourceToPatient (0018,1111)" in msg and "--sod-mm" in msg
-    assert "ImagerPixelSpacing (0018,1164)" in msg and "--pixel-spacing-mm ROW COL" in msg
+    assert ("DistanceSourceToDetector (0018,1110) is missing in rubo_0002_xa_multiframe.dcm: pass sid_mm=... "
+            "(CLI: --pa-sid-mm / --lat-sid-mm ...)") in msg
+    assert "DistanceSourceToPatient (0018,1111)" in msg and "--pa-sod-mm / --lat-sod-mm" in msg
+    assert "ImagerPixelSpacing (0018,1164)" in msg and "--pa-pixel-spacing-mm / --lat-pixel-spacing-mm ROW COL" in msg
     assert "PositionerPrimaryAngle" not in msg  # present in the file
 
 
@@ -97,11 +98,11 @@ def test_overrides_replace_file_values(sample: Path):
 
 
 def test_bad_overrides(sample: Path):
-    with pytest.raises(DSAInputError, match="unknown geometry override"):
+    with pytest.raises(InputError, match="unknown geometry override"):
         read_dsa(sample, sdd=1000, **SAMPLE_OVERRIDES)
-    with pytest.raises(DSAInputError, match="not shorter"):
+    with pytest.raises(InputError, match="not shorter"):
         read_dsa(sample, sid_mm=700.0, sod_mm=750.0, pixel_spacing_mm=0.3)
-    with pytest.raises(DSAInputError, match="one or two numbers"):
+    with pytest.raises(InputError, match="one or two numbers"):
         read_dsa(sample, sid_mm=1000.0, sod_mm=750.0, pixel_spacing_mm=(0.3, 0.3, 0.3))
 
 
@@ -143,7 +144,7 @@ def test_dicom_is_readable_by_gdcm(tmp_path: Path):
 
 def test_dicom_8bit_quantises_floats(tmp_path: Path):
     rng = np.random.default_rng(4)
-    frames = rng.normal(0.0, 2.0, size=(3, 20, 30)).astype(np.float32)
+    frames = rng.normal(0.0, 2.0, size=(3, 32, 40)).astype(np.float32)
     run = _run(frames)
     back = read_dsa(write_dsa_dicom(run, tmp_path / "q.dcm", bits=8))
     step = (frames.max() - frames.min()) / 255
@@ -232,7 +233,7 @@ def test_nifti_without_sidecar_needs_overrides(tmp_path: Path):
     run = _run()
     path = write_dsa_nifti(run, tmp_path / "run.nii.gz")
     sidecar_path(path).unlink()
-    with pytest.raises(DSAInputError, match=r"'sid_mm' \(sidecar run.json\) is missing in run.nii.gz: pass sid_mm=\.\.\."):
+    with pytest.raises(InputError, match=r"'sid_mm' \(sidecar run.json\) is missing in run.nii.gz: pass sid_mm=\.\.\."):
         read_dsa(path)
     back = read_dsa(path, primary_deg=0, secondary_deg=0, sid_mm=1000, sod_mm=700, pixel_spacing_mm=0.2)
     assert back.detector.spacing_mm == (0.2, 0.2) and back.frame_time_ms is None
@@ -243,10 +244,10 @@ def test_bad_sidecars(tmp_path: Path):
     side = sidecar_path(path)
     keys = json.loads(side.read_text())
     side.write_text(json.dumps({**keys, "sdd": 1000}))
-    with pytest.raises(DSAInputError, match="unknown key"):
+    with pytest.raises(InputError, match="unknown key"):
         read_dsa(path)
     side.write_text("{not json")
-    with pytest.raises(DSAInputError, match="not valid JSON"):
+    with pytest.raises(InputError, match="not valid JSON"):
         read_dsa(path)
 
 
@@ -286,7 +287,7 @@ def test_folder_with_changing_angle_is_rejected(tmp_path: Path):
     ds = pydicom.dcmread(f)
     ds.PositionerPrimaryAngle = 45
     ds.save_as(f, enforce_file_format=True)
-    with pytest.raises(DSAInputError, match="not one fixed-angle run"):
+    with pytest.raises(InputError, match="not one fixed-angle run"):
         read_dsa(folder)
 
 
@@ -311,13 +312,13 @@ def test_pixel_spacing_and_principal_offset_from_tags(tmp_path: Path):
 
 
 def test_missing_and_non_dicom_inputs(tmp_path: Path):
-    with pytest.raises(DSAInputError, match="not found"):
+    with pytest.raises(InputError, match="not found"):
         read_dsa(tmp_path / "none.dcm")
     (tmp_path / "x.dcm").write_bytes(b"garbage" * 50)
-    with pytest.raises(DSAInputError, match="not a DICOM file"):
+    with pytest.raises(InputError, match="not a DICOM file"):
         read_dsa(tmp_path / "x.dcm")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(DSAInputError, match="no DICOM images"):
+    with pytest.raises(InputError, match="no DICOM images"):
         read_dsa(tmp_path / "empty")
 
 
@@ -354,11 +355,11 @@ def test_geometry_override_args_with_prefix(prefix):
 
 
 def test_run_contract_errors():
-    det = Detector(10, 10, (0.3, 0.3), 1000.0)
+    det = Detector(40, 40, (0.3, 0.3), 1000.0)
     angles = CArmAngles(0.0, 0.0, 1000.0, 700.0)
-    with pytest.raises(DSAInputError, match="detector"):
-        DSARun(np.zeros((2, 10, 12)), det, angles)
-    with pytest.raises(DSAInputError, match="NaN"):
-        DSARun(np.full((2, 10, 10), np.nan), det, angles)
-    with pytest.raises(DSAInputError, match="SID"):
-        DSARun(np.zeros((2, 10, 10)), det, CArmAngles(0.0, 0.0, 1100.0, 700.0))
+    with pytest.raises(InputError, match="detector"):
+        DSARun(np.zeros((2, 40, 48)), det, angles)
+    with pytest.raises(InputError, match="NaN"):
+        DSARun(np.full((2, 40, 40), np.nan), det, angles)
+    with pytest.raises(InputError, match="SID"):
+        DSARun(np.zeros((2, 40, 40)), det, CArmAngles(0.0, 0.0, 1100.0, 700.0))

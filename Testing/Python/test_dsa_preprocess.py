@@ -8,7 +8,6 @@ import SimpleITK as sitk
 
 from geopose import contract as C
 from geopose.dsa import (
-    DSAInputError,
     DSARun,
     bilateral,
     clip_intensities,
@@ -20,6 +19,7 @@ from geopose.dsa import (
     temporal_map,
 )
 from geopose.geometry import CArmAngles, Detector
+from geopose.errors import InputError
 from geopose.options import RegistrationOptions
 
 
@@ -36,7 +36,7 @@ def test_temporal_map_is_the_maximum_over_frames():
     assert m.shape == (8, 9) and m[2, 3] == 50.0
     for r, c in [(0, 0), (7, 8), (5, 1)]:
         assert m[r, c] == max(frames[t, r, c] for t in range(6))
-    with pytest.raises(DSAInputError):
+    with pytest.raises(InputError):
         temporal_map(frames[0])
 
 
@@ -52,7 +52,7 @@ def test_cranium_mask_of_a_disc_is_the_disc():
     iou = (mask.astype(bool) & disc).sum() / (mask.astype(bool) | disc).sum()
     assert iou > 0.97
     assert mask[55, 70] == 1 and mask[7, 7] == 0
-    with pytest.raises(DSAInputError, match="constant"):
+    with pytest.raises(InputError, match="constant"):
         dsa_cranium_mask(np.ones((5, 5)))
 
 
@@ -70,7 +70,7 @@ def test_clip_uses_non_empty_columns_only():
     shaded = image.copy()
     shaded[:, :10] = 1e6
     np.testing.assert_allclose(clip_intensities(shaded, support)[:, 10:30], out[:, 10:30], rtol=1e-6)
-    with pytest.raises(DSAInputError, match="empty"):
+    with pytest.raises(InputError, match="empty"):
         clip_intensities(image, np.zeros_like(support))
 
 
@@ -208,7 +208,7 @@ def test_preprocess_with_given_mask():
     prep = preprocess_dsa(run, mask=half, tto_px=60)
     np.testing.assert_array_equal(prep.mask, half.astype(np.uint8))
     assert prep.tto_mask[:, 35:].sum() == 0
-    with pytest.raises(DSAInputError, match="mask"):
+    with pytest.raises(InputError, match="mask"):
         preprocess_dsa(run, mask=half[:, :100])
-    with pytest.raises(DSAInputError, match="empty"):
+    with pytest.raises(InputError, match="empty"):
         preprocess_dsa(run, mask=np.zeros_like(half))

@@ -120,7 +120,7 @@ def test_dsa_run_from_node_uses_attributes_and_overrides(module):
         f = slicer.vtkMRMLScalarVolumeNode()
         f.SetAndObserveImageData(mrml.volumes.image_data_from_array(run.frames[n][None]))
         bare.SetDataNodeAtValue(f, str(n))
-    with pytest.raises(ValueError, match="missing in DSA node 'bare'"):
+    with pytest.raises(InputError, match="missing in DSA node 'bare'"):
         logic.dsaRunFromNode(bare)
     geo = {"primary_deg": 0.0, "secondary_deg": 0.0, "sid_mm": 1000.0, "sod_mm": 650.0, "pixel_spacing_mm": (0.8, 0.8)}
     assert logic.dsaRunFromNode(bare, geo).detector == DET

@@ -41,6 +41,7 @@ from geopose.nets import (
     save_model,
 )
 from geopose.nets.decoding import decode_init_pose
+from geopose.nets.manifest import verify_models
 from geopose.nets.predictors import OnnxInit, OnnxRefine, TorchInit, TorchRefine
 from geopose.training.poses import init_pose_tensor, residual_tensor
 from geopose.nets.checkpoint import (
@@ -278,7 +279,7 @@ def test_load_model_rejects_foreign_files(tmp_path):
     torch.save({"a": torch.zeros(2)}, plain)
     with pytest.raises(ValueError, match="not a GeoPose model file"):
         load_model(plain)
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(InputError, match="does not exist"):
         load_model(tmp_path / "missing.pt")
 
 
@@ -379,7 +380,7 @@ def test_non_checkpoints_are_refused(tmp_path):
     torch.save({"state_dict": {"encoder.weight": torch.zeros(3)}}, other)
     with pytest.raises(ValueError, match="neither a GeoPose-Init"):
         import_checkpoint(other, tmp_path / "o.pt")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(InputError, match="does not exist"):
         import_checkpoint(tmp_path / "absent.ckpt", tmp_path / "o.pt")
     good = fake_lightning_checkpoint(tmp_path / "run.ckpt", small_init(), tmp_path / "m")
     with pytest.raises(ValueError, match="must be a .pt file"):
@@ -471,8 +472,16 @@ def test_load_models_both_runtimes_agree_and_check_every_file(tmp_path):
         load_models(tmp_path, runtime="onnxruntime")
     load_models(tmp_path, runtime="torch")  # the .pt files are still intact
     (tmp_path / "manifest.json").unlink()
-    with pytest.raises(InputError, match="manifest"):
+    with pytest.raises(InputError, match="has no manifest.json.*--allow-unverified-models"):
         load_models(tmp_path, runtime="torch")
+    # Explicitly unverified: the .pt files found by their headers, on either runtime.
+    unverified = load_models(tmp_path, runtime="onnxruntime", allow_unverified=True)
+    assert unverified.files["init"]["sha256"].startswith("unverified")
+    np.testing.assert_allclose(unverified.init.predict(image, np.array([True, False]))[0][:, :3, :3],
+                               results["torch"][0][:, :3, :3], atol=1e-4)
+    (tmp_path / "geopose_refine.pt").unlink()
+    with pytest.raises(InputError, match="no refine model"):
+        verify_models(tmp_path, allow_unverified=True)
 
 
 def test_the_shipped_models_declare_their_input():

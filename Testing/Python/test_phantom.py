@@ -9,7 +9,6 @@ import numpy as np
 import pydicom
 import pytest
 import SimpleITK as sitk
-import torch
 
 from geopose.dsa import read_dsa, write_dsa_dicom
 from geopose.geometry import project_points, view_from_primary_angle

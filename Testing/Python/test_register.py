@@ -18,7 +18,7 @@ from PIL import Image
 from geopose import contract as C
 from geopose.cta import load_cta
 from geopose.dsa import read_dsa
-from geopose.geometry import Detector, invert, isopose, pose_from_params
+from geopose.geometry import invert, isopose, pose_from_params
 from geopose.metrics import mncc
 from geopose.nets import ModelSet
 from geopose.options import RegistrationOptions

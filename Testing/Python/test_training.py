@@ -25,6 +25,7 @@ from geopose.training import recipe as R
 from geopose.training.augment import augment, clahe
 from geopose.training.canonical import align_to_template, nearest_rotation, resample_to_template, rigid_error
 from geopose.training.losses import double_geodesic, log_se3_geodesic
+from geopose.errors import InputError
 from geopose.training.manifest import model_entry, verify_manifest, write_manifest
 from geopose.training.population import FIDUCIALS, load_population, save_population, subject_from_volumes
 from geopose.training.poses import sample_init_poses, sample_refine_perturbations, sample_views
@@ -169,7 +170,7 @@ def test_population_cache_round_trip(tiny_population, tmp_path):
     assert recipe == {"seeds": [1, 2]} and [s.name for s in subjects] == ["phantom-1", "phantom-2"]
     assert subjects[0].channels.shape[0] == 3 and subjects[0].fiducials_mm.shape == (FIDUCIALS, 3)
     assert torch.allclose(subjects[0].channels, tiny_population[0].channels, atol=1e-3)
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(InputError, match="does not exist"):
         load_population(tmp_path / "missing.pt")
 
 
@@ -247,9 +248,9 @@ def test_manifest_verification_detects_corruption(tiny_population, tmp_path):
     target.write_bytes(bytes(data))
     with pytest.raises(ValueError, match="SHA-256"):
         verify_manifest(models)
-    with pytest.raises(FileNotFoundError, match="manifest.json"):
+    with pytest.raises(InputError, match="manifest.json"):
         verify_manifest(tmp_path)
-    with pytest.raises(FileNotFoundError, match="no ONNX file for the init network"):
+    with pytest.raises(InputError, match="no ONNX file for the init network"):
         verify_manifest(models, fmt="onnx")
 
 

@@ -23,6 +23,7 @@ from ..geometry import Detector
 from ..register.evaluate import load_truth
 from ..render import DRR
 from ..volume import Volume
+from ..errors import InputError
 
 __all__ = ["BenchCase", "phantom_case", "headsq_case", "load_headsq", "training_seeds", "seed_range", "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX"]
 
@@ -69,7 +70,7 @@ def seed_range(text: str) -> list[int]:
     try:
         return list(range(int(lo), int(hi or lo) + 1))
     except ValueError:
-        raise ValueError(f"seed range {text!r}: write FIRST-LAST or one seed, e.g. 5000-5039") from None
+        raise InputError(f"seed range {text!r}: write FIRST-LAST or one seed, e.g. 5000-5039") from None
 
 
 def phantom_case(seed: int, folder: Path, spacing_mm: float = 1.0) -> BenchCase:

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from .. import __version__
+from ..errors import InputError
 from ..register.cli import options_from_args, registration_option_args
 from ..register.pipeline import resolve_engine
 from ..resources import default_models_dir
@@ -38,7 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--long-iterations", type=int, default=400, help="long native TTO budget (0: skip)")
     p.add_argument("--spacing-mm", type=float, default=1.0, help="phantom voxel size (mm)")
     p.add_argument("--headsq", help="the real head CT headsq (quarter_sidecar.mhd) for a transfer run")
-    p.add_argument("--models", help="model folder (default: the shipped models)")
+    p.add_argument("--models", help="model folder with its manifest.json (default: the shipped models)")
+    p.add_argument("--allow-unverified-models", action="store_true",
+                   help="use a --models folder without manifest.json (its files are not checksum-verified)")
     registration_option_args(p)
     p.set_defaults(func=run)
 
@@ -53,7 +56,7 @@ def _load_or_run(path: Path, compute) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     if args.subjects < 1:
-        raise ValueError(f"--subjects must be at least 1, got {args.subjects}")
+        raise InputError(f"--subjects must be at least 1, got {args.subjects}")
     out = Path(args.out)
     (out / "cases").mkdir(parents=True, exist_ok=True)
     models_dir = Path(args.models) if args.models else default_models_dir()
@@ -62,9 +65,9 @@ def run(args: argparse.Namespace) -> int:
     if manifest.is_file():
         overlap = sorted(set(seeds) & training_seeds(manifest))
         if overlap:
-            raise ValueError(f"seeds {overlap[:5]} were used to train these models: choose --seed-start beyond them")
+            raise InputError(f"seeds {overlap[:5]} were used to train these models: choose --seed-start beyond them")
     options = options_from_args(args)
-    backend, device, models = resolve_engine(options, models_dir)
+    backend, device, models = resolve_engine(options, models_dir, allow_unverified=args.allow_unverified_models)
     settings = BenchSettings(options, args.long_iterations)
     n_long = args.subjects if args.long_subjects is None else args.long_subjects
     cases: list[dict] = []

@@ -9,18 +9,20 @@ rescale slope/intercept is applied by the reader.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
-from ..geometry.frames import RAS_TO_LPS
+from .. import limits as L
 from ..checksums import file_sha256
+from ..errors import InputError
+from ..geometry.frames import RAS_TO_LPS
+from ..imagefiles import IMAGE_EXTENSIONS, check_image_file, image_extension
 from ..volume import Volume
+from .dicom_series import read_dicom_series
 
 __all__ = [
-    "CTAInputError",
     "CTA_EXTENSIONS",
     "load_cta",
     "save_volume",
@@ -31,45 +33,9 @@ __all__ = [
 ]
 
 #: File name endings ``load_cta`` reads (a folder is read as a DICOM series).
-CTA_EXTENSIONS = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
-#: Largest voxel size (mm) accepted as a CT of a head.
-MAX_SPACING_MM = 10.0
-#: A CT of a head in HU contains air: its minimum lies below this value.
-HU_AIR_UPPER = -200.0
-#: A value span this small suggests a normalised (e.g. 0..1) image, not HU.
-NORMALISED_SPAN = 2.0
+CTA_EXTENSIONS = IMAGE_EXTENSIONS
 #: Extra spatial tolerance for slightly non-orthonormal directions when saving.
 _ORTHONORMAL_TOL = 1e-4
-
-
-class CTAInputError(ValueError):
-    """A CT(A) input that cannot be used; the message names the problem and the remedy."""
-
-
-def _ext(path: Path) -> str:
-    name = path.name.lower()
-    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
-
-
-def _detached_data_files(header: Path) -> list[Path]:
-    """Data files named by a MetaImage (.mhd) or detached NRRD (.nhdr) header, in order."""
-    text = header.read_text(errors="replace")
-    key = r"ElementDataFile\s*=\s*(.+)" if _ext(header) == ".mhd" else r"data ?file\s*:\s*(.+)"
-    m = re.search(key, text, flags=re.IGNORECASE)
-    if not m:
-        return []
-    spec = m.group(1).strip()
-    if spec.upper().startswith("LIST"):
-        tail = text[m.end():].split()
-        return [header.parent / t for t in tail]
-    if spec.upper() == "LOCAL":
-        return []
-    parts = spec.split()
-    if "%" in parts[0] and len(parts) >= 3:
-        start, stop = int(parts[1]), int(parts[2])
-        step = int(parts[3]) if len(parts) > 3 else 1
-        return [header.parent / (parts[0] % n) for n in range(start, stop + 1, step)]
-    return [header.parent / spec]
 
 
 def volume_from_sitk(image: sitk.Image, metadata: dict | None = None) -> Volume:
@@ -89,10 +55,10 @@ def sitk_from_volume(volume: Volume) -> sitk.Image:
     lin = ijk_to_lps[:3, :3]
     spacing = np.linalg.norm(lin, axis=0)
     if np.any(spacing <= 0) or not np.all(np.isfinite(lin)):
-        raise CTAInputError(f"the volume affine has a zero or non-finite axis: {volume.ijk_to_ras.tolist()}")
+        raise InputError(f"the volume affine has a zero or non-finite axis: {volume.ijk_to_ras.tolist()}")
     direction = lin / spacing
     if not np.allclose(direction.T @ direction, np.eye(3), atol=_ORTHONORMAL_TOL):
-        raise CTAInputError(
+        raise InputError(
             "the volume affine is sheared (its axes are not orthogonal); NIfTI/NRRD/MHA via SimpleITK store "
             "only rotation x spacing: resample the volume onto an orthogonal grid first"
         )
@@ -109,88 +75,82 @@ def sitk_from_volume(volume: Volume) -> sitk.Image:
 def save_volume(volume: Volume, path: str | Path) -> Path:
     """Write a volume (image or label map, voxel type kept) to NIfTI, NRRD or MHA (RAS -> LPS)."""
     path = Path(path)
-    if _ext(path) not in (".nii", ".nii.gz", ".nrrd", ".mha"):
-        raise CTAInputError(f"cannot write {path.name}: use a .nii, .nii.gz, .nrrd or .mha file name")
+    if image_extension(path) not in (".nii", ".nii.gz", ".nrrd", ".mha"):
+        raise InputError(f"cannot write {path.name}: use a .nii, .nii.gz, .nrrd or .mha file name")
     path.parent.mkdir(parents=True, exist_ok=True)
-    sitk.WriteImage(sitk_from_volume(volume), str(path), useCompression=_ext(path) != ".nii")
+    sitk.WriteImage(sitk_from_volume(volume), str(path), useCompression=image_extension(path) != ".nii")
     return path
 
 
-def _read_dicom_series(folder: Path, series_uid: str | None) -> tuple[sitk.Image, list[Path]]:
-    reader = sitk.ImageSeriesReader()
-    ids = list(reader.GetGDCMSeriesIDs(str(folder)))
-    if not ids:
-        raise CTAInputError(f"{folder} holds no DICOM series: point to a folder of CT slices or to a NIfTI/NRRD/MHA file")
-    if series_uid is None:
-        if len(ids) > 1:
-            raise CTAInputError(
-                f"{folder} holds {len(ids)} DICOM series ({', '.join(ids)}): choose one with series_uid=... "
-                "or put the CTA series in a folder of its own"
-            )
-        series_uid = ids[0]
-    elif series_uid not in ids:
-        raise CTAInputError(f"series {series_uid} is not in {folder}; it holds {', '.join(ids)}")
-    files = list(reader.GetGDCMSeriesFileNames(str(folder), series_uid))
-    reader.SetFileNames(files)
-    return reader.Execute(), [Path(f) for f in files]
+def _read_image_file(path: Path) -> tuple[sitk.Image, list[Path], dict]:
+    """A NIfTI/NRRD/MetaImage file read by SimpleITK after :func:`~geopose.imagefiles.check_image_file`
+    has checked its header against its voxel data; the files it consists of; notes."""
+    declared = check_image_file(path, L.CTA_MAX_VOXELS)
+    try:
+        image = sitk.ReadImage(str(path))
+    except RuntimeError as exc:
+        detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else "no detail"
+        if "spacing" in detail.lower():
+            raise InputError(
+                f"{path.name} has an invalid voxel size ({detail}): fix the spacing in the file header (positive mm)"
+            ) from None
+        raise InputError(
+            f"cannot read {path} as an image ({detail}): check that the file is complete and in the format its name says"
+        ) from None
+    if image.GetNumberOfComponentsPerPixel() == 1 and image.GetNumberOfPixels() != int(np.prod(declared.shape)):
+        raise InputError(f"{path.name}: SimpleITK read {image.GetSize()} voxels but the header declares {declared.shape}: "
+                         "the header is damaged; re-export the image")
+    return image, declared.files, {"voxel_data_checks": declared.checks}
 
 
 def load_cta(path: str | Path, *, hu_offset: float = 0.0, series_uid: str | None = None, check_hu: bool = True) -> Volume:
     """Read a CT(A) volume in HU from NIfTI, NRRD (.nrrd/.nhdr), MetaImage (.mha/.mhd)
     or a folder holding a DICOM series, and validate it (:func:`validate_cta`).
 
+    Files are checked against their headers first (:mod:`geopose.imagefiles`: truncated or
+    surplus voxel data, NaN/Inf voxels); a DICOM series is placed by its slices' geometry
+    and resampled when tilted or unevenly spaced (:mod:`geopose.cta.dicom_series`).
     ``hu_offset`` (HU) is added to every voxel after reading, for files that store
     raw CT numbers without the rescale intercept (e.g. ``hu_offset=-1024``).
     Metadata: ``source_path``, ``source_files`` (count), ``sha256`` (of the header and
-    data files, or the DICOM files in series order, concatenated), ``hu_offset``.
+    data files, or the DICOM files in series order, concatenated), ``hu_offset``, and
+    ``slice_geometry`` (DICOM) or ``voxel_data_checks``.
     """
     path = Path(path)
+    hu_offset = L.check_range("hu_offset", hu_offset, L.HU_OFFSET, "use -1024 for raw CT numbers, else 0")
     if not path.exists():
-        raise CTAInputError(f"CTA not found: {path} (check the path; a DICOM series is given as its folder)")
+        raise InputError(f"CTA not found: {path} (check the path; a DICOM series is given as its folder)")
     if path.is_dir():
-        image, files = _read_dicom_series(path, series_uid)
+        array, ijk_to_lps, files, notes = read_dicom_series(path, series_uid)
+        meta = {"source_path": str(path.resolve()), "source_files": len(files), "sha256": file_sha256(files),
+                "hu_offset": float(hu_offset), **notes}
+        volume = Volume(array, RAS_TO_LPS @ ijk_to_lps, meta)
     else:
-        ext = _ext(path)
+        ext = image_extension(path)
         if ext not in CTA_EXTENSIONS:
-            raise CTAInputError(
+            raise InputError(
                 f"unknown CTA format {path.name!r}: give a NIfTI (.nii/.nii.gz), NRRD (.nrrd/.nhdr), "
                 "MetaImage (.mha/.mhd) file or a folder with a DICOM series"
             )
-        files = [path]
-        if ext in (".mhd", ".nhdr"):
-            data = _detached_data_files(path)
-            missing = [str(d) for d in data if not d.exists()]
-            if missing:
-                raise CTAInputError(f"{path.name} names data files that do not exist: {missing[:3]}; keep them next to the header")
-            files += data
-        try:
-            image = sitk.ReadImage(str(path))
-        except RuntimeError as exc:
-            detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else "no detail"
-            if "spacing" in detail.lower():
-                raise CTAInputError(
-                    f"{path.name} has an invalid voxel size ({detail}): fix the spacing in the file header (positive mm)"
-                ) from None
-            raise CTAInputError(
-                f"cannot read {path} as an image ({detail}): check that the file is complete and in the format its name says"
-            ) from None
-    if image.GetNumberOfComponentsPerPixel() != 1:
-        raise CTAInputError(
-            f"{path.name} has {image.GetNumberOfComponentsPerPixel()} components per voxel (colour or vector image): "
-            "a CTA is a scalar image in HU; export the CT itself"
-        )
-    if image.GetDimension() != 3:
-        raise CTAInputError(
-            f"{path.name} is a {image.GetDimension()}D image of size {image.GetSize()}: a CTA must be one 3D volume "
-            "(split a 4D/time series and pick one phase, or give the full slice stack for a 2D file)"
-        )
-    meta = {
-        "source_path": str(path.resolve()),
-        "source_files": len(files),
-        "sha256": file_sha256(files),
-        "hu_offset": float(hu_offset),
-    }
-    volume = volume_from_sitk(image, meta)
+        image, files, notes = _read_image_file(path)
+        if image.GetNumberOfComponentsPerPixel() != 1:
+            raise InputError(
+                f"{path.name} has {image.GetNumberOfComponentsPerPixel()} components per voxel (colour or vector image): "
+                "a CTA is a scalar image in HU; export the CT itself"
+            )
+        if image.GetDimension() != 3:
+            raise InputError(
+                f"{path.name} is a {image.GetDimension()}D image of size {image.GetSize()}: a CTA must be one 3D volume "
+                "(split a 4D/time series and pick one phase, or give the full slice stack for a 2D file)"
+            )
+        meta = {
+            "source_path": str(path.resolve()),
+            "source_files": len(files),
+            "sha256": file_sha256(files),
+            "hu_offset": float(hu_offset),
+            **notes,
+        }
+        volume = volume_from_sitk(image, meta)
     if hu_offset:
         volume.array = volume.array + np.float32(hu_offset)
     validate_cta(volume, name=path.name, check_hu=check_hu)
@@ -198,42 +158,59 @@ def load_cta(path: str | Path, *, hu_offset: float = 0.0, series_uid: str | None
 
 
 def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True) -> None:
-    """Raise :class:`CTAInputError` unless ``volume`` looks like a 3D CT in HU.
+    """Raise :class:`InputError` unless ``volume`` looks like a 3D CT in HU.
 
-    Checks: at least 2 voxels along each axis, voxel size in (0, 10] mm, finite voxels,
-    not constant, and (``check_hu``) HU-like values: a span wider than a normalised image
-    and a minimum below -200 HU (air).
+    Checks (bounds of :mod:`geopose.limits`): voxels per axis (``CTA_VOXELS_PER_AXIS``), a finite,
+    non-degenerate affine, voxel
+    size (``CTA_VOXEL_SIZE_MM``), extent (``CTA_EXTENT_MM``), finite voxels, not constant, and
+    (``check_hu``) HU-like values: a span wider than a normalised image and a minimum below
+    -200 HU (air).
     """
-    if min(volume.shape_ijk) < 2:
-        raise CTAInputError(f"{name} has size {volume.shape_ijk} (i, j, k): a CTA needs a 3D stack with at least 2 voxels along each axis")
+    lo, hi = L.CTA_VOXELS_PER_AXIS
+    if not all(lo <= n <= hi for n in volume.shape_ijk):
+        raise InputError(f"{name} has size {volume.shape_ijk} (i, j, k): a CTA has {lo}..{hi} voxels along each axis; "
+                         "give the whole 3D stack (or check the header's dimensions)")
+    if not np.all(np.isfinite(volume.ijk_to_ras)) or abs(np.linalg.det(volume.ijk_to_ras[:3, :3])) < 1e-12:
+        raise InputError(f"{name} has a non-finite or degenerate position/orientation in its header "
+                         f"({np.round(volume.ijk_to_ras[:3], 4).tolist()}): fix the header's origin and direction (or re-export it)")
     spacing = np.asarray(volume.spacing_mm)
-    if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0) or np.any(spacing > MAX_SPACING_MM):
-        raise CTAInputError(
-            f"{name} has voxel size {tuple(round(float(s), 4) for s in spacing)} mm: expected finite values in (0, {MAX_SPACING_MM:g}] mm; "
+    vlo, vhi = L.CTA_VOXEL_SIZE_MM
+    if not np.all(np.isfinite(spacing)) or np.any(spacing < vlo) or np.any(spacing > vhi):
+        raise InputError(
+            f"{name} has voxel size {tuple(round(float(s), 4) for s in spacing)} mm: expected finite values in {vlo:g}..{vhi:g} mm; "
             "fix the spacing in the file header (or re-export the series)"
+        )
+    extent = np.asarray(volume.extent_mm)
+    elo, ehi = L.CTA_EXTENT_MM
+    if np.any(extent < elo) or np.any(extent > ehi):
+        raise InputError(
+            f"{name} covers {' x '.join(f'{e:.4g}' for e in extent)} mm: a CTA of a head covers {elo:g}..{ehi:g} mm along each "
+            "axis; check the header's dimensions and spacing (or give the complete volume)"
         )
     a = volume.array
     finite = np.isfinite(a)
     if not finite.all():
-        raise CTAInputError(f"{name} has {int((~finite).sum())} NaN/infinite voxels: replace them (e.g. with -1024 HU) before loading")
+        raise InputError(f"{name} has {int((~finite).sum())} NaN/infinite voxels: replace them (e.g. with -1024 HU) before loading")
     lo, hi = float(a.min()), float(a.max())
     if lo == hi:
-        raise CTAInputError(f"{name} is constant ({lo:g} everywhere): the file holds no image; check the export")
+        if not check_hu and lo == 0:
+            raise InputError(f"{name} is empty (0 everywhere): give a mask with the structure labelled, or leave it out")
+        raise InputError(f"{name} is constant ({lo:g} everywhere): the file holds no image; check the export")
     if not check_hu:
         return
-    if hi - lo <= NORMALISED_SPAN:
-        raise CTAInputError(
+    if hi - lo <= L.CTA_MIN_SPAN_HU:
+        raise InputError(
             f"{name} has values in [{lo:g}, {hi:g}]: this looks like a normalised image, not Hounsfield units; "
             "use the original CT in HU"
         )
     if lo >= 0:
-        raise CTAInputError(
+        raise InputError(
             f"{name} has no negative values (range [{lo:g}, {hi:g}]): a CT in HU has air near -1000. It probably "
             "stores raw CT numbers without the -1024 offset: load it with hu_offset=-1024 (CLI: --hu-offset -1024) "
             "or fix the rescale intercept; if it is not a CT (e.g. MR), it cannot be used"
         )
-    if lo > HU_AIR_UPPER:
-        raise CTAInputError(
+    if lo > L.CTA_AIR_MAX_HU:
+        raise InputError(
             f"{name} has minimum {lo:g}: a head CT in HU contains air (about -1000 HU) around the head; "
             "check the rescale (hu_offset) or use an uncropped CT"
         )

@@ -12,6 +12,7 @@ import SimpleITK as sitk
 from .. import contract as C
 from ..volume import Volume
 from .io import sitk_from_volume
+from ..errors import InputError
 
 __all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU"]
 
@@ -75,7 +76,7 @@ def cranium_mask_from_cta(volume: Volume, *, bone_hu: float = C.HU_BONE_MIN) -> 
     in axial slices (maxilla, mandible) are included with their enclosed cavities.
     """
     if not np.any(volume.array > bone_hu):
-        raise ValueError(f"no voxel above {bone_hu:g} HU: the CTA shows no bone, so no cranium mask can be derived; supply a mask")
+        raise InputError(f"no voxel above {bone_hu:g} HU: the CTA shows no bone, so no cranium mask can be derived; supply a mask")
     full = sitk_from_volume(volume)
     factors = [max(1, round(WORK_SPACING_MM / s)) for s in volume.spacing_mm]
     work = sitk.BinShrink(full, factors) if max(factors) > 1 else full
@@ -107,7 +108,7 @@ def vessel_mask_from_cta(volume: Volume, cranium: Volume) -> Volume:
     approximation (e.g. a DRR vessel channel), never as a segmentation.
     """
     if cranium.array.shape != volume.array.shape:
-        raise ValueError(f"cranium mask shape {cranium.array.shape} does not match the CTA grid {volume.array.shape}")
+        raise InputError(f"cranium mask shape {cranium.array.shape} does not match the CTA grid {volume.array.shape}")
     lo, hi = VESSEL_HU_RANGE
     a = volume.array
     candidate = (a >= lo) & (a <= hi) & (cranium.array > 0)

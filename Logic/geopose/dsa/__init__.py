@@ -11,7 +11,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "preprocess_dsa", "resample_to_detector", "resample_to_model_sdd", "temporal_map",
         ),
         "readers": ("read_dsa", "run_from_geometry", "sidecar_path"),
-        "run": ("GEOMETRY_KEYS", "LAT_ROLE", "PA_ROLE", "DSAInputError", "DSARun"),
+        "run": ("GEOMETRY_KEYS", "LAT_ROLE", "PA_ROLE", "DSARun"),
         "writers": ("quantize_frames", "write_dsa_dicom", "write_dsa_nifti"),
     },
 )

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from .run import GEOMETRY_SOURCES, cli_option
+from ..errors import InputError
+from .run import GEOMETRY_SOURCES, PHOTOMETRIC, cli_option
 
 __all__ = ["geometry_override_args", "geometry_overrides_from_args"]
 
@@ -25,7 +26,7 @@ def _clean(prefix: str) -> str:
 
 def geometry_override_args(parser: argparse.ArgumentParser, *, prefix: str = "") -> None:
     """Add ``--primary-deg --secondary-deg --sid-mm --sod-mm --pixel-spacing-mm
-    --principal-offset-mm`` (with ``prefix="pa"`` or ``"pa-"``: ``--pa-sid-mm`` ... for one
+    --principal-offset-mm --photometric`` (with ``prefix="pa"`` or ``"pa-"``: ``--pa-sid-mm`` ... for one
     view of several) to ``parser``; each replaces the value read from the DSA file."""
     prefix = _clean(prefix)
     group = parser.add_argument_group(f"{prefix.upper() + ' ' if prefix else ''}DSA geometry overrides")
@@ -37,16 +38,21 @@ def geometry_override_args(parser: argparse.ArgumentParser, *, prefix: str = "")
         elif key == "principal_offset_mm":
             kwargs.update(nargs=2, metavar=("X0", "Y0"))
         group.add_argument(option, help=f"{text} (replaces {GEOMETRY_SOURCES[key]})", **kwargs)
+    group.add_argument(
+        f"--{prefix + '-' if prefix else ''}photometric", choices=PHOTOMETRIC, default=None,
+        dest=f"{prefix + '_' if prefix else ''}photometric_interpretation",
+        help="how the stored frames are to be read (replaces PhotometricInterpretation (0028,0004) or the sidecar's)",
+    )
 
 
 def geometry_overrides_from_args(args: argparse.Namespace, *, prefix: str = "") -> dict[str, Any]:
     """The overrides given on the command line as keyword arguments for ``read_dsa``."""
     prefix = _clean(prefix)
     out = {}
-    for key in _HELP:
+    for key in (*_HELP, "photometric_interpretation"):
         value = getattr(args, f"{prefix + '_' if prefix else ''}{key}", None)
         if value is not None:
             if key == "pixel_spacing_mm" and len(value) > 2:
-                raise ValueError(f"--pixel-spacing-mm takes one or two values (ROW COL), got {len(value)}")
+                raise InputError(f"--pixel-spacing-mm takes one or two values (ROW COL), got {len(value)}")
             out[key] = tuple(value) if isinstance(value, list) else value
     return out

@@ -15,9 +15,10 @@ import SimpleITK as sitk
 
 from .. import contract as C
 from ..geometry.detector import Detector
+from ..errors import InputError
 from ..images import block_mean, normalize_minmax
 from ..options import check_clip_percentiles
-from .run import DSAInputError, DSARun
+from .run import DSARun
 
 __all__ = [
     "PreparedDSA",
@@ -48,7 +49,7 @@ def temporal_map(frames: np.ndarray) -> np.ndarray:
     """Maximum intensity over time: ``(T, H, W)`` -> ``(H, W)`` float32."""
     frames = np.asarray(frames)
     if frames.ndim != 3 or frames.shape[0] < 1:
-        raise DSAInputError(f"temporal_map needs (T, H, W) frames, got shape {frames.shape}")
+        raise InputError(f"temporal_map needs (T, H, W) frames, got shape {frames.shape}")
     return frames.max(axis=0).astype(np.float32)
 
 
@@ -69,9 +70,9 @@ def dsa_cranium_mask(image: np.ndarray) -> np.ndarray:
     """
     image = np.asarray(image, dtype=np.float32)
     if image.ndim != 2:
-        raise DSAInputError(f"dsa_cranium_mask needs a 2D MAP, got shape {image.shape}")
+        raise InputError(f"dsa_cranium_mask needs a 2D MAP, got shape {image.shape}")
     if image.max() <= image.min():
-        raise DSAInputError("the MAP is constant: no head to mask; check the run or supply a mask")
+        raise InputError("the MAP is constant: no head to mask; check the run or supply a mask")
     f = max(1, int(np.ceil(max(image.shape) / MASK_WORK_PX)))
     small = block_mean(image, (f, f)) if f > 1 else image
     otsu = sitk.OtsuThreshold(sitk.GetImageFromArray(small), 0, 1)
@@ -98,10 +99,10 @@ def clip_intensities(
     image = np.asarray(image, dtype=np.float32)
     support = image != 0 if support is None else np.asarray(support) > 0
     if support.shape != image.shape:
-        raise DSAInputError(f"support mask {support.shape} does not match the image {image.shape}")
+        raise InputError(f"support mask {support.shape} does not match the image {image.shape}")
     columns = support.any(axis=0)
     if not columns.any():
-        raise DSAInputError("no non-empty column to take intensity percentiles from: the mask is empty")
+        raise InputError("no non-empty column to take intensity percentiles from: the mask is empty")
     lo, hi = np.percentile(image[:, columns], percentiles)
     clipped = np.clip(image, lo, hi)
     return clipped - clipped.min()
@@ -145,7 +146,7 @@ def resample_to_detector(image: np.ndarray, source: Detector, target: Detector) 
     """
     image = np.asarray(image, dtype=np.float32)
     if image.shape != source.shape:
-        raise DSAInputError(f"image {image.shape} does not match the source detector {source.shape}")
+        raise InputError(f"image {image.shape} does not match the source detector {source.shape}")
     src_rc = source.camera_to_pixel(target.camera_points())
     ratio = (  # target pixel size projected onto the source plane, in source pixels
         target.spacing_mm[0] * source.sdd_mm / (target.sdd_mm * source.spacing_mm[0]),
@@ -187,7 +188,7 @@ def bilateral(
     thousandth of its cost for the 11-px sigma of CONVENTIONS 5."""
     x = np.asarray(image, dtype=np.float64)
     if x.ndim != 2:
-        raise DSAInputError(f"bilateral needs a 2D image, got shape {x.shape}")
+        raise InputError(f"bilateral needs a 2D image, got shape {x.shape}")
     lo = float(x.min())
     rows, cols = np.mgrid[: x.shape[0], : x.shape[1]]
     coords = [rows / spatial_sigma_px + _GRID_PAD, cols / spatial_sigma_px + _GRID_PAD, (x - lo) / range_sigma + _GRID_PAD]
@@ -284,9 +285,9 @@ def preprocess_dsa(
     else:
         mask = (np.asarray(mask) > 0).astype(np.uint8)
         if mask.shape != image.shape:
-            raise DSAInputError(f"the given mask is {mask.shape} but the run's frames are {image.shape}")
+            raise InputError(f"the given mask is {mask.shape} but the run's frames are {image.shape}")
         if not mask.any():
-            raise DSAInputError("the given mask is empty: supply a mask of the head or let the run's MAP define it")
+            raise InputError("the given mask is empty: supply a mask of the head or let the run's MAP define it")
     clipped = clip_intensities(image, mask)
     unit = intensity_unit(run)
     model = Detector.model()

@@ -5,8 +5,10 @@ Geometry from DICOM:
 
 * ``pixel_spacing_mm`` = ImagerPixelSpacing (detector plane, [row, col]); without it,
   PixelSpacing x EstimatedRadiographicMagnificationFactor (PixelSpacing is calibrated
-  at the patient); PixelSpacing alone is taken as detector-plane spacing (recorded in
-  ``metadata['geometry_sources']``).
+  at the patient); PixelSpacing alone is taken as detector-plane spacing; without
+  both, FieldOfViewDimensions (mm, [row, col] or a diameter) or IntensifierSize (a
+  diameter) over the matrix (GE systems: 200 mm / 512 px = 0.390625 mm). The source
+  is recorded in ``metadata['geometry_sources']``.
 * ``principal_offset_mm``: DetectorActiveOrigin ``(r0, c0)`` mm is the top-left of the
   imaged area on the physical detector. With PhysicalDetectorSize ``(Hp, Wp)`` and the
   imaged size ``(h, w)`` (DetectorActiveDimensions, else rows x spacing), the image
@@ -15,15 +17,19 @@ Geometry from DICOM:
   ``(x0, y0) = (-d_col, -d_row)`` (camera x grows towards column 0, y towards row 0).
   Without PhysicalDetectorSize the offset is 0 (noted in metadata).
 * Frames: the pixel data with the linear modality LUT (RescaleSlope/Intercept) when
-  present; no inversion (see :meth:`DSARun.attenuation`).
+  present, decoded and checked by :mod:`geopose.dicomio`; no inversion (see
+  :meth:`DSARun.attenuation`). A run that declares MONOCHROME1 but whose frames look like
+  MONOCHROME2 (the border, usually air, brighter than the centre as stored) is refused
+  unless ``photometric_interpretation`` is given.
 
-Every geometry value can be overridden by keyword (see ``run.GEOMETRY_KEYS``).
+Every geometry value can be overridden by keyword (see ``run.GEOMETRY_KEYS``). Every
+reader, and :func:`run_from_geometry` for runs that come from no file, ends in the same
+checks (:func:`geopose.dsa.run.check_geometry`: plausibility bounds, angles wrapped to
+(-180, 180]).
 """
 
 from __future__ import annotations
 
-import json
-import math
 from datetime import datetime
 from pathlib import Path
 from typing import Any, Callable
@@ -31,49 +37,57 @@ from typing import Any, Callable
 import numpy as np
 import pydicom
 import SimpleITK as sitk
-from pydicom.errors import InvalidDicomError
 
-from ..cta.io import file_sha256
+from .. import limits as L
+from ..checksums import file_sha256
+from ..dicomio import decode_frames, float_tag, floats_tag, int_tag, looks_like_dicom, raw_tag, read_dataset
+from ..errors import InputError
 from ..geometry.detector import CArmAngles, Detector
-from .run import GEOMETRY_KEYS, GEOMETRY_SOURCES, REQUIRED_GEOMETRY_KEYS, DSAInputError, DSARun, cli_option
+from ..imagefiles import IMAGE_EXTENSIONS, check_image_file, image_extension
+from ..jsonio import read_json
+from .run import (
+    GEOMETRY_KEYS, GEOMETRY_SOURCES, PHOTOMETRIC, REQUIRED_GEOMETRY_KEYS, DSARun, check_frames_shape, check_geometry, cli_hint,
+)
 
 __all__ = ["read_dsa", "run_from_geometry", "sidecar_path", "NIFTI_EXTENSIONS", "SIDECAR_KEYS"]
 
-NIFTI_EXTENSIONS = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+NIFTI_EXTENSIONS = IMAGE_EXTENSIONS
 #: JSON sidecar keys: the geometry keys plus the photometric interpretation of the stored frames.
 SIDECAR_KEYS = GEOMETRY_KEYS + ("photometric_interpretation",)
 #: Largest angle difference (deg) tolerated between single-frame files of one run.
 ANGLE_TOLERANCE_DEG = 0.5
-
-
-def _ext(path: Path) -> str:
-    name = path.name.lower()
-    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
+#: A MONOCHROME1 run "looks like MONOCHROME2" when its mean frame's border is brighter than its
+#: centre (as stored) by more than this fraction of the 1-99 percentile range.
+PHOTOMETRIC_MARGIN = 0.05
 
 
 def sidecar_path(image_path: str | Path) -> Path:
     """``run.nii.gz`` -> ``run.json`` (the geometry sidecar beside a NIfTI/NRRD/MHA run)."""
     p = Path(image_path)
-    stem = p.name[: -len(_ext(p))]
+    stem = p.name[: -len(image_extension(p))]
     return p.with_name(stem + ".json")
 
 
-def _pair(value: Any, key: str) -> tuple[float, float]:
-    v = np.atleast_1d(np.asarray(value, dtype=float)).ravel()
-    if v.size == 1:
-        v = np.repeat(v, 2)
-    if v.size != 2:
-        raise DSAInputError(f"{key} needs one or two numbers (row, col), got {value!r}")
-    return (float(v[0]), float(v[1]))
-
-
-def _normalise(key: str, value: Any) -> Any:
-    if key in ("pixel_spacing_mm", "principal_offset_mm"):
-        return _pair(value, key)
+def _number(value: Any, origin: str) -> float:
+    if isinstance(value, (bool, dict, list, tuple)) or value is None:
+        raise InputError(f"{origin} must be a number, got {value!r}")
     try:
         return float(value)
-    except (TypeError, ValueError):
-        raise DSAInputError(f"{key} must be a number, got {value!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{origin} must be a number, got {str(value)[:60]!r}") from None
+
+
+def _normalise(key: str, value: Any, origin: str) -> Any:
+    """A scalar key as float; ``pixel_spacing_mm`` / ``principal_offset_mm`` as a (row, col) / (x0, y0) pair."""
+    if key not in ("pixel_spacing_mm", "principal_offset_mm"):
+        return _number(value, origin)
+    items = list(value) if isinstance(value, (list, tuple, np.ndarray, pydicom.multival.MultiValue)) else [value]
+    if len(items) == 1 and key == "pixel_spacing_mm":
+        items = items * 2
+    if len(items) != 2:
+        raise InputError(f"{origin} needs {'one or ' if key == 'pixel_spacing_mm' else ''}two numbers "
+                         f"{'(row, col)' if key == 'pixel_spacing_mm' else '(x0, y0)'}, got {str(value)[:60]!r}")
+    return tuple(_number(v, origin) for v in items)
 
 
 def _assemble(
@@ -85,35 +99,29 @@ def _assemble(
     where: Callable[[str], str],
     metadata: dict,
 ) -> DSARun:
-    """Merge file values with overrides, report every missing required key at once, build the run."""
+    """Merge file values with overrides, report every missing required key at once, check, build the run."""
     unknown = sorted(set(overrides) - set(GEOMETRY_KEYS))
     if unknown:
-        raise DSAInputError(f"unknown geometry override(s) {unknown}; valid keys: {', '.join(GEOMETRY_KEYS)}")
-    values = {k: _normalise(k, v) for k, v in found.items() if v is not None}
+        raise InputError(f"unknown geometry override(s) {unknown}; valid keys: {', '.join(GEOMETRY_KEYS)}")
     for key, value in overrides.items():
         if value is not None:
-            values[key] = _normalise(key, value)
+            found[key] = value
             sources[key] = "override"
+
+    def origin(key: str) -> str:
+        return f"the override {key}" if sources.get(key) == "override" else f"{where(key)} in {name}"
+
+    values = {k: _normalise(k, v, origin(k)) for k, v in found.items() if v is not None}
     missing = [k for k in REQUIRED_GEOMETRY_KEYS if k not in values]
     if missing:
         lines = []
         for key in missing:
             example = "ROW COL" if key == "pixel_spacing_mm" else "..."
-            lines.append(f"{where(key)} is missing in {name}: pass {key}=... (CLI: {cli_option(key)} {example})")
-        raise DSAInputError("; ".join(lines))
-    spacing = values["pixel_spacing_mm"]
-    for key in ("sid_mm", "sod_mm"):
-        if not (math.isfinite(values[key]) and values[key] > 0):
-            raise DSAInputError(f"{key} must be a positive distance in mm, got {values[key]} ({sources.get(key, where(key))})")
-    if not values["sod_mm"] < values["sid_mm"]:
-        raise DSAInputError(
-            f"source-to-isocentre distance {values['sod_mm']} mm is not shorter than the source-to-detector distance "
-            f"{values['sid_mm']} mm in {name}: check sod_mm / sid_mm"
-        )
-    if min(spacing) <= 0 or not all(map(math.isfinite, spacing)):
-        raise DSAInputError(f"pixel_spacing_mm must be positive mm, got {spacing}")
+            lines.append(f"{where(key)} is missing in {name}: pass {key}=... (CLI: {cli_hint(key)} {example})")
+        raise InputError("; ".join(lines))
+    values = check_geometry(values, name, lambda k: "the override" if sources.get(k) == "override" else where(k))
     t, h, w = frames.shape
-    detector = Detector(h, w, spacing, values["sid_mm"], values.get("principal_offset_mm", (0.0, 0.0)))
+    detector = Detector(h, w, values["pixel_spacing_mm"], values["sid_mm"], values.get("principal_offset_mm", (0.0, 0.0)))
     angles = CArmAngles(values["primary_deg"], values["secondary_deg"], values["sid_mm"], values["sod_mm"])
     metadata["geometry_sources"] = {k: sources.get(k, "file") for k in values}
     return DSARun(frames, detector, angles, values.get("frame_time_ms"), metadata)
@@ -129,68 +137,96 @@ def run_from_geometry(
     if frames.ndim == 2:
         frames = frames[None]
     if frames.ndim != 3:
-        raise DSAInputError(f"{name}: DSA frames must be (T, H, W), got shape {frames.shape}")
+        raise InputError(f"{name}: DSA frames must be (T, H, W), got shape {frames.shape}")
+    check_frames_shape(frames.shape, name)
     unknown = sorted(set(geometry) - set(GEOMETRY_KEYS))
     if unknown:
-        raise DSAInputError(f"{name}: unknown geometry key(s) {unknown}; valid keys: {', '.join(GEOMETRY_KEYS)}")
+        raise InputError(f"{name}: unknown geometry key(s) {unknown}; valid keys: {', '.join(GEOMETRY_KEYS)}")
     found = {k: v for k, v in geometry.items() if v is not None}
-    return _assemble(frames, found, {k: source for k in found}, {}, name, lambda k: f"'{k}'", dict(metadata or {}))
+    meta = dict(metadata or {})
+    meta.setdefault("source_path", name)
+    return _assemble(frames, found, {k: source for k in found}, {}, name, lambda k: f"'{k}'", meta)
+
+
+def _check_photometric(frames: np.ndarray, photometric: str, name: str) -> None:
+    """Refuse MONOCHROME1 frames whose mean frame has a border (outer tenth) brighter than its centre (inner
+    half), as stored: the head would come out dark. Only a declared MONOCHROME1 is checked (the XA image module
+    allows MONOCHROME2 only); a collimated MONOCHROME1 run may need the override."""
+    if photometric != "MONOCHROME1":
+        return
+    image = frames.mean(axis=0)
+    h, w = image.shape
+    bh, bw = max(1, h // 10), max(1, w // 10)
+    border = np.concatenate([image[:bh].ravel(), image[-bh:].ravel(), image[:, :bw].ravel(), image[:, -bw:].ravel()])
+    centre = image[h // 4: h - h // 4, w // 4: w - w // 4]
+    lo, hi = np.percentile(image, (1, 99))
+    if np.median(border) - np.median(centre) > PHOTOMETRIC_MARGIN * max(hi - lo, 1e-12):
+        raise InputError(
+            f"{name} declares MONOCHROME1 but its frames look like MONOCHROME2 (the border, usually air, is brighter than "
+            "the centre as stored, so the head would come out dark): fix PhotometricInterpretation in the file, or confirm "
+            "the interpretation with photometric_interpretation='MONOCHROME1' or 'MONOCHROME2' (CLI: --pa-photometric / "
+            "--lat-photometric)"
+        )
+
+
+def _photometric(declared: str, confirmed: str | None, frames: np.ndarray, name: str, metadata: dict) -> None:
+    """Record the photometric interpretation: ``confirmed`` (an override) wins, else the declared one, checked."""
+    if confirmed is not None:
+        if confirmed not in PHOTOMETRIC:
+            raise InputError(f"photometric_interpretation must be MONOCHROME1 or MONOCHROME2, got {confirmed!r}")
+        metadata["photometric_interpretation"] = confirmed
+        metadata["photometric_source"] = "override"
+        return
+    _check_photometric(frames, declared, name)
+    metadata["photometric_interpretation"] = declared
 
 
 # ------------------------------------------------------------------------- DICOM
 
 
-def _num(ds: pydicom.Dataset, keyword: str) -> float | None:
-    value = ds.get(keyword)
-    if value is None or value == "":
-        return None
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return None
-
-
-def _nums(ds: pydicom.Dataset, keyword: str) -> list[float] | None:
-    value = ds.get(keyword)
-    if value is None or value == "":
-        return None
-    try:
-        return [float(v) for v in (value if isinstance(value, (list, pydicom.multival.MultiValue)) else [value])]
-    except (TypeError, ValueError):
-        return None
-
-
-def _dicom_geometry(ds: pydicom.Dataset, rows: int, cols: int) -> tuple[dict, dict, dict]:
-    """Geometry values, their sources and notes from one DICOM dataset."""
+def _dicom_geometry(ds: pydicom.Dataset, rows: int, cols: int, name: str) -> tuple[dict, dict, dict]:
+    """Geometry values (as stored: :func:`_normalise` converts and names a damaged one), their sources
+    and notes from one DICOM dataset."""
     found: dict[str, Any] = {
-        "primary_deg": _num(ds, "PositionerPrimaryAngle"),
-        "secondary_deg": _num(ds, "PositionerSecondaryAngle"),
-        "sid_mm": _num(ds, "DistanceSourceToDetector"),
-        "sod_mm": _num(ds, "DistanceSourceToPatient"),
+        "primary_deg": raw_tag(ds, "PositionerPrimaryAngle"),
+        "secondary_deg": raw_tag(ds, "PositionerSecondaryAngle"),
+        "sid_mm": raw_tag(ds, "DistanceSourceToDetector"),
+        "sod_mm": raw_tag(ds, "DistanceSourceToPatient"),
     }
     sources = {k: GEOMETRY_SOURCES[k].split(" (")[0] for k, v in found.items() if v is not None}
     notes: dict[str, str] = {}
-    imager = _nums(ds, "ImagerPixelSpacing")
-    pixel = _nums(ds, "PixelSpacing")
-    magnification = _num(ds, "EstimatedRadiographicMagnificationFactor")
-    if imager:
+    imager = raw_tag(ds, "ImagerPixelSpacing")
+    pixel = floats_tag(ds, "PixelSpacing", name) if imager is None else None
+    fov = floats_tag(ds, "FieldOfViewDimensions", name) if imager is None and pixel is None else None
+    if imager is not None:
         found["pixel_spacing_mm"], sources["pixel_spacing_mm"] = imager, "ImagerPixelSpacing"
-    elif pixel and magnification:
-        found["pixel_spacing_mm"] = [p * magnification for p in pixel]
-        sources["pixel_spacing_mm"] = "PixelSpacing x EstimatedRadiographicMagnificationFactor"
     elif pixel:
-        found["pixel_spacing_mm"], sources["pixel_spacing_mm"] = pixel, "PixelSpacing (taken as detector plane)"
-    frame_time = _num(ds, "FrameTime")
-    vector = _nums(ds, "FrameTimeVector")
-    if frame_time:
+        magnification = float_tag(ds, "EstimatedRadiographicMagnificationFactor", name)
+        if magnification:
+            found["pixel_spacing_mm"] = [p * magnification for p in pixel]
+            sources["pixel_spacing_mm"] = "PixelSpacing x EstimatedRadiographicMagnificationFactor"
+        else:
+            found["pixel_spacing_mm"], sources["pixel_spacing_mm"] = pixel, "PixelSpacing (taken as detector plane)"
+    elif fov and len(fov) in (1, 2):
+        found["pixel_spacing_mm"] = [fov[0] / rows, fov[-1] / cols] if len(fov) == 2 else [fov[0] / max(rows, cols)] * 2
+        sources["pixel_spacing_mm"] = f"FieldOfViewDimensions ({' x '.join(f'{v:g}' for v in fov)} mm) / matrix ({rows} x {cols})"
+    else:
+        intensifier = float_tag(ds, "IntensifierSize", name)
+        if intensifier:
+            found["pixel_spacing_mm"] = [intensifier / max(rows, cols)] * 2
+            sources["pixel_spacing_mm"] = f"IntensifierSize ({intensifier:g} mm) / matrix ({rows} x {cols})"
+    frame_time = raw_tag(ds, "FrameTime")
+    if frame_time is not None and str(frame_time).strip() not in ("0", "0.0"):
         found["frame_time_ms"], sources["frame_time_ms"] = frame_time, "FrameTime"
-    elif vector and len(vector) > 1:
-        found["frame_time_ms"], sources["frame_time_ms"] = float(np.mean(vector[1:])), "FrameTimeVector (mean)"
-    origin = _nums(ds, "DetectorActiveOrigin")
-    if origin and len(origin) == 2 and found.get("pixel_spacing_mm"):
-        physical = _nums(ds, "PhysicalDetectorSize")
-        active = _nums(ds, "DetectorActiveDimensions")
-        spacing = _pair(found["pixel_spacing_mm"], "pixel_spacing_mm")
+    else:
+        vector = floats_tag(ds, "FrameTimeVector", name)
+        if vector and len(vector) > 1:
+            found["frame_time_ms"], sources["frame_time_ms"] = float(np.mean(vector[1:])), "FrameTimeVector (mean)"
+    origin = floats_tag(ds, "DetectorActiveOrigin", name)
+    if origin and len(origin) == 2 and found.get("pixel_spacing_mm") is not None:
+        physical = floats_tag(ds, "PhysicalDetectorSize", name)
+        active = floats_tag(ds, "DetectorActiveDimensions", name)
+        spacing = _normalise("pixel_spacing_mm", found["pixel_spacing_mm"], f"{sources['pixel_spacing_mm']} in {name}")
         if physical and len(physical) == 2:
             h, w = active if active and len(active) == 2 else (rows * spacing[0], cols * spacing[1])
             d_row = origin[0] + h / 2 - physical[0] / 2
@@ -207,8 +243,7 @@ def _dicom_metadata(ds: pydicom.Dataset, path: Path, files: list[Path]) -> dict:
         "source_path": str(path.resolve()),
         "source_files": len(files),
         "sha256": file_sha256(files),
-        "photometric_interpretation": str(ds.get("PhotometricInterpretation", "MONOCHROME2")),
-        "bits_stored": int(ds.get("BitsStored", 0) or 0),
+        "bits_stored": int_tag(ds, "BitsStored", path.name, 0),
         "transfer_syntax": str(ds.file_meta.get("TransferSyntaxUID", "")) if hasattr(ds, "file_meta") else "",
     }
     for key in ("PatientID", "StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID", "SOPClassUID", "Modality", "SeriesDescription"):
@@ -217,42 +252,21 @@ def _dicom_metadata(ds: pydicom.Dataset, path: Path, files: list[Path]) -> dict:
     return meta
 
 
-def _pixels(ds: pydicom.Dataset, name: str) -> np.ndarray:
-    """Decoded frames ``(T, H, W)`` float32 with the linear modality LUT applied."""
-    if int(ds.get("SamplesPerPixel", 1) or 1) != 1:
-        raise DSAInputError(f"{name} is a colour image (SamplesPerPixel {ds.SamplesPerPixel}): export the run as greyscale")
-    try:
-        array = ds.pixel_array
-    except Exception as exc:  # decoders raise many types (RuntimeError, NotImplementedError, ValueError)
-        syntax = ds.file_meta.get("TransferSyntaxUID", "unknown") if hasattr(ds, "file_meta") else "unknown"
-        raise DSAInputError(
-            f"cannot decode the pixel data of {name} (transfer syntax {getattr(syntax, 'name', syntax)}: {exc}); "
-            "install the pylibjpeg plugins (pip install pylibjpeg pylibjpeg-libjpeg pylibjpeg-openjpeg pylibjpeg-rle) "
-            "or decompress the file (e.g. gdcmconv --raw)"
-        ) from None
-    frames_declared = int(ds.get("NumberOfFrames", 1) or 1)
-    if array.ndim == 2:
-        array = array[None]
-    if array.ndim != 3 or array.shape[0] != frames_declared:
-        raise DSAInputError(f"{name}: decoded pixel data has shape {array.shape}, expected {frames_declared} greyscale frames")
-    frames = array.astype(np.float32)
-    slope, intercept = _num(ds, "RescaleSlope"), _num(ds, "RescaleIntercept")
-    if slope is not None or intercept is not None:
-        frames = frames * np.float32(1.0 if slope is None else slope) + np.float32(intercept or 0.0)
-    return frames
+def _declared_photometric(ds: pydicom.Dataset) -> str:
+    return str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip()
 
 
-def _read_dicom_file(path: Path, overrides: dict) -> DSARun:
-    try:
-        ds = pydicom.dcmread(path)
-    except InvalidDicomError:
-        raise DSAInputError(f"{path} is not a DICOM file: give an XA multi-frame DICOM, a folder of frames or a NIfTI/NRRD run") from None
-    if "PixelData" not in ds:
-        raise DSAInputError(f"{path.name} holds no pixel data (a report or structure?): give the image file of the run")
-    frames = _pixels(ds, path.name)
-    found, sources, notes = _dicom_geometry(ds, frames.shape[1], frames.shape[2])
+def _frames(ds: pydicom.Dataset, name: str) -> tuple[np.ndarray, dict]:
+    return decode_frames(ds, name, lambda shape: check_frames_shape(shape, name))
+
+
+def _read_dicom_file(path: Path, overrides: dict, photometric: str | None) -> DSARun:
+    ds = read_dataset(path)
+    frames, notes = _frames(ds, path.name)
+    found, sources, geo_notes = _dicom_geometry(ds, frames.shape[1], frames.shape[2], path.name)
     meta = _dicom_metadata(ds, path, [path])
-    meta.update(notes)
+    meta.update(notes, **geo_notes)
+    _photometric(_declared_photometric(ds), photometric, frames, path.name, meta)
     return _assemble(frames, found, sources, overrides, path.name, lambda k: GEOMETRY_SOURCES[k], meta)
 
 
@@ -269,106 +283,135 @@ def _dicom_time_s(ds: pydicom.Dataset) -> float | None:
     return None
 
 
-def _read_dicom_folder(folder: Path, overrides: dict) -> DSARun:
-    headers: list[tuple[Path, pydicom.Dataset]] = []
+def _dicom_headers(folder: Path) -> list[tuple[Path, pydicom.Dataset]]:
+    """(file, header) of every DICOM file of ``folder``; files not meant to be DICOM are skipped, damaged
+    DICOM files refused (a frame dropped silently would change the run)."""
+    headers = []
     for f in sorted(p for p in folder.iterdir() if p.is_file()):
         try:
-            headers.append((f, pydicom.dcmread(f, stop_before_pixels=True)))
-        except (InvalidDicomError, OSError):
-            continue
-    headers = [(f, ds) for f, ds in headers if "Rows" in ds]
+            headers.append((f, read_dataset(f, stop_before_pixels=True)))
+        except InputError as exc:
+            if "is not a DICOM file" not in str(exc) or looks_like_dicom(f):
+                raise
+    return headers
+
+
+def _read_dicom_folder(folder: Path, overrides: dict, photometric: str | None) -> DSARun:
+    headers = [(f, ds) for f, ds in _dicom_headers(folder) if "Rows" in ds]
     if not headers:
-        raise DSAInputError(f"{folder} holds no DICOM images: point to the folder of the run's frames or to its file")
-    multi = [f for f, ds in headers if int(ds.get("NumberOfFrames", 1) or 1) > 1]
+        raise InputError(f"{folder} holds no DICOM images: point to the folder of the run's frames or to its file")
+    multi = [f for f, ds in headers if int_tag(ds, "NumberOfFrames", f.name, 1) > 1]
     if len(headers) == 1 or multi:
         if len(headers) == 1:
-            return _read_dicom_file(headers[0][0], overrides)
-        raise DSAInputError(f"{folder} mixes {len(multi)} multi-frame file(s) with other images: pass the run's file itself")
+            return _read_dicom_file(headers[0][0], overrides, photometric)
+        raise InputError(f"{folder} mixes {len(multi)} multi-frame file(s) with other images: pass the run's file itself")
     series = {str(ds.get("SeriesInstanceUID", "")) for _, ds in headers}
     if len(series) > 1:
-        raise DSAInputError(f"{folder} holds {len(series)} series: put one run's frames in a folder of their own")
-    headers.sort(key=lambda fd: (int(fd[1].get("InstanceNumber", 0) or 0), _dicom_time_s(fd[1]) or 0.0, fd[0].name))
+        raise InputError(f"{folder} holds {len(series)} series: put one run's frames in a folder of their own")
+    check_frames_shape((len(headers), int_tag(headers[0][1], "Rows", headers[0][0].name), int_tag(headers[0][1], "Columns", headers[0][0].name)),
+                       folder.name)
+    headers.sort(key=lambda fd: (int_tag(fd[1], "InstanceNumber", fd[0].name, 0), _dicom_time_s(fd[1]) or 0.0, fd[0].name))
     first = headers[0][1]
     for f, ds in headers[1:]:
         for key in ("PositionerPrimaryAngle", "PositionerSecondaryAngle"):
-            a, b = _num(first, key), _num(ds, key)
+            a, b = float_tag(first, key, headers[0][0].name), float_tag(ds, key, f.name)
             if a is not None and b is not None and abs(a - b) > ANGLE_TOLERANCE_DEG:
-                raise DSAInputError(f"{f.name} has {key} {b} but the first frame {a}: the folder is not one fixed-angle run")
-    datasets = [pydicom.dcmread(f) for f, _ in headers]
-    frames = np.concatenate([_pixels(ds, f.name) for (f, _), ds in zip(headers, datasets)])
-    found, sources, notes = _dicom_geometry(first, frames.shape[1], frames.shape[2])
+                raise InputError(f"{f.name} has {key} {b} but the first frame {a}: the folder is not one fixed-angle run")
+    decoded = [_frames(read_dataset(f), f.name) for f, _ in headers]
+    shapes = {frames.shape[1:] for frames, _ in decoded}
+    if len(shapes) > 1:
+        raise InputError(f"{folder} holds frames of different sizes {sorted(shapes)}: the folder is not one run")
+    frames = np.concatenate([frames for frames, _ in decoded])
+    found, sources, notes = _dicom_geometry(first, frames.shape[1], frames.shape[2], headers[0][0].name)
     if "frame_time_ms" not in sources:
         times = [t for t in (_dicom_time_s(ds) for _, ds in headers) if t is not None]
         if len(times) == len(headers) > 1 and np.all(np.diff(times) > 0):
             found["frame_time_ms"] = float(np.median(np.diff(times)) * 1000.0)
             sources["frame_time_ms"] = "AcquisitionTime/ContentTime differences"
     meta = _dicom_metadata(first, folder, [f for f, _ in headers])
-    meta.update(notes)
+    meta.update(notes, pixel_integrity="; ".join(sorted({n["pixel_integrity"] for _, n in decoded})))
+    _photometric(_declared_photometric(first), photometric, frames, folder.name, meta)
     return _assemble(frames, found, sources, overrides, folder.name, lambda k: GEOMETRY_SOURCES[k], meta)
 
 
 # ---------------------------------------------------------------- NIfTI + sidecar
 
 
-def _read_image_with_sidecar(path: Path, overrides: dict) -> DSARun:
+def _frames_shape(declared: tuple[int, ...], path: Path) -> tuple[int, int, int]:
+    """(T, H, W) of a header's grid (x = columns, y = rows, then frames; a 4D grid with z = 1)."""
+    sizes = list(declared)
+    if len(sizes) == 4 and sizes[2] == 1:
+        sizes = sizes[:2] + sizes[3:]
+    if len(sizes) == 2:
+        sizes.append(1)
+    if len(sizes) != 3:
+        raise InputError(f"{path.name} has size {tuple(declared)}: a DSA run is 2D+time (columns, rows, frames)")
+    return sizes[2], sizes[1], sizes[0]
+
+
+def _read_sidecar(side: Path) -> dict[str, Any]:
+    remedy = f"fix the sidecar (keys {', '.join(SIDECAR_KEYS)}) or delete it and pass the geometry as overrides"
+    found = read_json(side, remedy)
+    if not isinstance(found, dict):
+        raise InputError(f"{side.name} must hold a JSON object with keys {', '.join(SIDECAR_KEYS)}")
+    unknown = sorted(set(found) - set(SIDECAR_KEYS))
+    if unknown:
+        raise InputError(f"{side.name} has unknown key(s) {unknown}; valid keys: {', '.join(SIDECAR_KEYS)}")
+    return found
+
+
+def _read_image_with_sidecar(path: Path, overrides: dict, photometric: str | None) -> DSARun:
+    declared = check_image_file(path, L.DSA_MAX_PIXELS)
+    shape = _frames_shape(declared.shape, path)
+    check_frames_shape(shape, path.name)
     try:
         image = sitk.ReadImage(str(path))
     except RuntimeError as exc:
         detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else "no detail"
-        raise DSAInputError(f"cannot read {path} as an image ({detail}): check the file") from None
+        raise InputError(f"cannot read {path} as an image ({detail}): check the file") from None
     if image.GetNumberOfComponentsPerPixel() != 1:
-        raise DSAInputError(f"{path.name} has {image.GetNumberOfComponentsPerPixel()} components per pixel: store greyscale frames")
+        raise InputError(f"{path.name} has {image.GetNumberOfComponentsPerPixel()} components per pixel: store greyscale frames")
     array = sitk.GetArrayFromImage(image).astype(np.float32)
-    if image.GetDimension() == 4 and array.shape[1] == 1:  # (T, 1, H, W): 2D+time stored as 4D
-        array = array[:, 0]
-    if array.ndim == 2:
-        array = array[None]
-    if array.ndim != 3:
-        raise DSAInputError(f"{path.name} has size {image.GetSize()}: a DSA run is 2D+time (columns, rows, frames)")
+    if array.size != int(np.prod(shape)):
+        raise InputError(f"{path.name}: SimpleITK read {array.size} pixels but the header declares {shape}: the header is damaged")
+    array = array.reshape(shape)
     side = sidecar_path(path)
-    found: dict[str, Any] = {}
-    if side.exists():
-        try:
-            found = json.loads(side.read_text())
-        except json.JSONDecodeError as exc:
-            raise DSAInputError(f"{side.name} is not valid JSON ({exc}): fix the sidecar") from None
-        if not isinstance(found, dict):
-            raise DSAInputError(f"{side.name} must hold a JSON object with keys {', '.join(SIDECAR_KEYS)}")
-        unknown = sorted(set(found) - set(SIDECAR_KEYS))
-        if unknown:
-            raise DSAInputError(f"{side.name} has unknown key(s) {unknown}; valid keys: {', '.join(SIDECAR_KEYS)}")
-    photometric = str(found.pop("photometric_interpretation", "MONOCHROME2"))
-    if photometric not in ("MONOCHROME1", "MONOCHROME2"):
-        raise DSAInputError(f"photometric_interpretation in {side.name} must be MONOCHROME1 or MONOCHROME2, got {photometric!r}")
+    found = _read_sidecar(side) if side.exists() else {}
+    declared_pi = found.pop("photometric_interpretation", "MONOCHROME2")
+    if declared_pi not in PHOTOMETRIC:
+        raise InputError(f"photometric_interpretation in {side.name} must be MONOCHROME1 or MONOCHROME2, got {declared_pi!r}")
     sources = {k: side.name for k in found}
-    files = [path] + ([side] if side.exists() else [])
+    files = declared.files + ([side] if side.exists() else [])
     meta = {
         "source_path": str(path.resolve()),
         "source_files": len(files),
         "sha256": file_sha256(files),
-        "photometric_interpretation": photometric,
+        "pixel_integrity": "; ".join(declared.checks),
     }
+    _photometric(declared_pi, photometric, array, path.name, meta)
+
     def where(key: str) -> str:
         return f"'{key}' (sidecar {side.name})"
 
     return _assemble(array, found, sources, overrides, path.name, where, meta)
 
 
-def read_dsa(path: str | Path, **overrides: Any) -> DSARun:
+def read_dsa(path: str | Path, *, photometric_interpretation: str | None = None, **overrides: Any) -> DSARun:
     """Read a DSA run from a DICOM file (XA multi-frame or single frame; uncompressed,
-    JPEG Baseline/Lossless, JPEG 2000 or RLE), a folder of single-frame DICOMs (sorted
+    JPEG Baseline/Lossless, JPEG-LS, JPEG 2000 or RLE), a folder of single-frame DICOMs (sorted
     by InstanceNumber then acquisition time) or a NIfTI/NRRD/MHA 2D+time image with a
     ``<name>.json`` geometry sidecar. Keyword overrides (``primary_deg``, ``secondary_deg``,
     ``sid_mm``, ``sod_mm``, ``pixel_spacing_mm`` (row, col) or one value,
     ``principal_offset_mm`` (x0, y0), ``frame_time_ms``) replace file values; ``None``
-    leaves the file value. A missing required value raises :class:`DSAInputError`
-    naming the tag/key and the override.
+    leaves the file value. ``photometric_interpretation`` (MONOCHROME1/2) replaces the
+    file's. Anything missing, damaged or implausible raises :class:`InputError` naming the
+    tag/key and the remedy.
     """
     path = Path(path)
     if not path.exists():
-        raise DSAInputError(f"DSA run not found: {path} (check the path)")
+        raise InputError(f"DSA run not found: {path} (check the path)")
     if path.is_dir():
-        return _read_dicom_folder(path, overrides)
-    if _ext(path) in NIFTI_EXTENSIONS:
-        return _read_image_with_sidecar(path, overrides)
-    return _read_dicom_file(path, overrides)
+        return _read_dicom_folder(path, overrides, photometric_interpretation)
+    if image_extension(path) in NIFTI_EXTENSIONS:
+        return _read_image_with_sidecar(path, overrides, photometric_interpretation)
+    return _read_dicom_file(path, overrides, photometric_interpretation)

@@ -14,7 +14,8 @@ from pydicom.dataset import FileMetaDataset
 from pydicom.uid import ExplicitVRLittleEndian, XRayAngiographicImageStorage, generate_uid
 
 from .readers import sidecar_path
-from .run import DSAInputError, DSARun
+from ..errors import InputError
+from .run import DSARun
 
 __all__ = ["write_dsa_dicom", "write_dsa_nifti", "quantize_frames"]
 
@@ -74,7 +75,7 @@ def write_dsa_dicom(
     into every frame (BurnedInAnnotation YES).
     """
     if bits not in (8, 16):
-        raise DSAInputError(f"bits must be 8 or 16, got {bits}")
+        raise InputError(f"bits must be 8 or 16, got {bits}")
     path = Path(path)
     stored, slope, intercept = quantize_frames(run.frames, bits)
     if burn_in_text:

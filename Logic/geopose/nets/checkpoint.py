@@ -5,13 +5,16 @@ and ``<root>/data/<key>`` (raw tensor storages). :class:`_TensorOnlyUnpickler`
 resolves only torch tensor-rebuild functions, storage types and plain containers;
 every other global (Lightning classes, callbacks, ``os.system``, ...) becomes an
 inert :class:`ForeignObject` that records nothing and runs nothing. Only the
-``state_dict`` is used.
+``state_dict`` is used. Sizes are bounded before anything is read or allocated: every
+storage's size in the zip directory (:data:`~geopose.limits.MAX_CHECKPOINT_STORAGE_BYTES`,
+all together :data:`~geopose.limits.MAX_CHECKPOINT_TOTAL_BYTES`) and every rebuilt tensor
+(:data:`~geopose.limits.MAX_CHECKPOINT_TENSOR_ELEMENTS`).
 """
 
 from __future__ import annotations
 
 import collections
-import json
+import math
 import os
 import pickle
 import zipfile
@@ -20,7 +23,10 @@ from typing import Any
 
 import torch
 
+from .. import limits as L
 from ..checksums import file_sha256
+from ..errors import InputError
+from ..jsonio import read_json
 from ..resources import default_models_dir
 from .model_io import MODEL_SUFFIX, save_model
 from .models import InitNet, NetConfig, RefineNet, build_model
@@ -76,6 +82,10 @@ class _StorageType:
 def _rebuild_tensor(storage: Any, offset: int, size: tuple, stride: tuple, *_ignored: Any) -> torch.Tensor:
     if not isinstance(storage, torch.Tensor):
         raise pickle.UnpicklingError("a tensor refers to a storage that is not in the checkpoint")
+    if not all(isinstance(v, int) and v >= 0 for v in (*size, *stride, offset)):
+        raise pickle.UnpicklingError(f"a tensor has an invalid size/stride/offset {size}/{stride}/{offset}")
+    if math.prod(size) > L.MAX_CHECKPOINT_TENSOR_ELEMENTS:
+        raise pickle.UnpicklingError(f"a tensor of {math.prod(size)} elements exceeds {L.MAX_CHECKPOINT_TENSOR_ELEMENTS}")
     return storage.as_strided(tuple(size), tuple(stride), int(offset)).clone()
 
 
@@ -116,9 +126,13 @@ class _TensorOnlyUnpickler(pickle.Unpickler):
             return ForeignObject()
         if key not in self._storages:
             try:
-                raw = bytearray(self._archive.read(f"{self._root}/data/{key}"))
+                info = self._archive.getinfo(f"{self._root}/data/{key}")
             except KeyError:
                 raise pickle.UnpicklingError(f"storage {key} is missing from the checkpoint") from None
+            if info.file_size > L.MAX_CHECKPOINT_STORAGE_BYTES:
+                raise pickle.UnpicklingError(f"storage {key} declares {info.file_size} bytes, more than the "
+                                             f"{L.MAX_CHECKPOINT_STORAGE_BYTES} a GeoPose network's tensor may have")
+            raw = bytearray(self._archive.read(info))
             flat = torch.frombuffer(raw, dtype=torch.uint8) if raw else torch.empty(0, dtype=torch.uint8)
             if flat.numel() % torch.empty((), dtype=storage_type.dtype).element_size():
                 raise pickle.UnpicklingError(f"storage {key} has a size that does not fit its dtype")
@@ -136,37 +150,53 @@ def read_checkpoint_state_dict(path: str | os.PathLike) -> dict[str, torch.Tenso
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} does not exist")
+        raise InputError(f"checkpoint {path} does not exist")
     problem = f"{path} is not a PyTorch checkpoint"
+    remedy = "pass the .ckpt file of a GeoPose release"
     if not zipfile.is_zipfile(path):
-        raise ValueError(f"{problem} (not a zip-format torch.save file); pass the .ckpt file of a GeoPose release")
-    with zipfile.ZipFile(path) as archive:
-        pickles = [n for n in archive.namelist() if n.endswith("/data.pkl") and n.count("/") == 1]
-        if len(pickles) != 1:
-            raise ValueError(f"{problem} (no single data.pkl in the archive); pass the .ckpt file of a GeoPose release")
-        root = pickles[0].split("/")[0]
-        names = set(archive.namelist())
-        byteorder = archive.read(f"{root}/byteorder").decode().strip() if f"{root}/byteorder" in names else "little"
-        with archive.open(pickles[0]) as stream:
-            try:
+        raise InputError(f"{problem} (not a zip-format torch.save file); {remedy}")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            infos = archive.infolist()
+            total = sum(i.file_size for i in infos)
+            if total > L.MAX_CHECKPOINT_TOTAL_BYTES:
+                raise InputError(f"{path} declares {total} bytes of content, more than the {L.MAX_CHECKPOINT_TOTAL_BYTES} a "
+                                 f"GeoPose checkpoint may have; {remedy}")
+            pickles = [i for i in infos if i.filename.endswith("/data.pkl") and i.filename.count("/") == 1]
+            if len(pickles) != 1 or pickles[0].file_size > L.MAX_CHECKPOINT_STORAGE_BYTES:
+                raise InputError(f"{problem} (no single data.pkl of a plausible size in the archive); {remedy}")
+            root = pickles[0].filename.split("/")[0]
+            big = [i for i in infos if i.filename.startswith(f"{root}/data/") and i.file_size > L.MAX_CHECKPOINT_STORAGE_BYTES]
+            if big:
+                raise InputError(f"{path}: storage {big[0].filename} declares {big[0].file_size} bytes, more than the "
+                                 f"{L.MAX_CHECKPOINT_STORAGE_BYTES} a GeoPose network's tensor may have; {remedy}")
+            names = {i.filename: i for i in infos}
+            order = names.get(f"{root}/byteorder")
+            byteorder = archive.read(order).decode(errors="replace").strip() if order and order.file_size < 64 else "little"
+            with archive.open(pickles[0]) as stream:
                 obj = _TensorOnlyUnpickler(stream, archive, root, byteorder == "little").load()
-            except (pickle.UnpicklingError, EOFError, ValueError, TypeError, RuntimeError, AttributeError) as exc:
-                raise ValueError(f"{problem} (unreadable object tree: {exc})") from None
+    except InputError:
+        raise
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, RuntimeError, AttributeError, IndexError, KeyError,
+            OverflowError, RecursionError, MemoryError, zipfile.BadZipFile, zipfile.LargeZipFile, OSError) as exc:
+        raise InputError(f"{problem} (unreadable: {type(exc).__name__}: {' '.join(str(exc).split())[:200]}); {remedy}") from None
     state = obj.get("state_dict") if isinstance(obj, dict) and "state_dict" in obj else obj
     if not isinstance(state, dict) or not state or not all(
         isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
     ):
-        raise ValueError(f"{path} holds no state_dict of tensors; pass a GeoPose Lightning checkpoint")
+        raise InputError(f"{path} holds no state_dict of tensors; pass a GeoPose Lightning checkpoint")
     return dict(state)
 
 
 def load_manifest(path: str | os.PathLike | None = None) -> dict[str, Any]:
     """The published checkpoints' manifest (file names, sizes, SHA-256)."""
-    path = published_manifest_path() if path is None else path
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"the published checkpoint manifest {path} is missing; reinstall GeoPose")
-    with open(path, encoding="utf-8") as handle:
-        return json.load(handle)
+    path = Path(published_manifest_path() if path is None else path)
+    if not path.is_file():
+        raise InputError(f"the published checkpoint manifest {path} is missing; reinstall GeoPose")
+    manifest = read_json(path, "reinstall GeoPose")
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict):
+        raise InputError(f"{path} is not the published checkpoint manifest; reinstall GeoPose")
+    return manifest
 
 
 def official_entry(path: str | os.PathLike, manifest: dict[str, Any]) -> tuple[str, dict[str, Any]] | None:
@@ -183,10 +213,10 @@ def verify_official(path: str | os.PathLike, official: str, entry: dict[str, Any
     size = Path(path).stat().st_size
     remedy = f"download {official} again from the GeoPose release, or rename the file if it is your own model"
     if size != entry["bytes"]:
-        raise ValueError(f"{path} is named like the published {official} but has {size} bytes, not {entry['bytes']}; {remedy}")
+        raise InputError(f"{path} is named like the published {official} but has {size} bytes, not {entry['bytes']}; {remedy}")
     digest = file_sha256(path)
     if digest != entry["sha256"]:
-        raise ValueError(f"{path} is named like the published {official} but its SHA-256 is {digest}, not {entry['sha256']}; {remedy}")
+        raise InputError(f"{path} is named like the published {official} but its SHA-256 is {digest}, not {entry['sha256']}; {remedy}")
 
 
 def infer_config(state: dict[str, torch.Tensor]) -> NetConfig:
@@ -196,17 +226,17 @@ def infer_config(state: dict[str, torch.Tensor]) -> NetConfig:
     elif "net.head.weight" in state:
         kind, trunk = "refine", "net.backbone."
     else:
-        raise ValueError("the state_dict is neither a GeoPose-Init (net.fc.*) nor a GeoPose-Refine (net.head.*) network")
+        raise InputError("the state_dict is neither a GeoPose-Init (net.fc.*) nor a GeoPose-Refine (net.head.*) network")
     conv1 = state.get(f"{trunk}conv1.weight")
     if conv1 is None or conv1.ndim != 4:
-        raise ValueError(f"the state_dict lacks the stem convolution {trunk}conv1.weight")
+        raise InputError(f"the state_dict lacks the stem convolution {trunk}conv1.weight")
     blocks = tuple(
         len({k[len(f"{trunk}layer{s}."):].split(".")[0] for k in state if k.startswith(f"{trunk}layer{s}.")})
         for s in range(1, 5)
     )
     depths = [d for d, b in BLOCKS_PER_STAGE.items() if b == blocks]
     if not depths:
-        raise ValueError(f"ResNet stages with {blocks} blocks match no supported depth {sorted(BLOCKS_PER_STAGE)}")
+        raise InputError(f"ResNet stages with {blocks} blocks match no supported depth {sorted(BLOCKS_PER_STAGE)}")
     backbone = BackboneConfig(depth=depths[0], base_width=conv1.shape[0], in_channels=conv1.shape[1])
     if kind == "init":
         return NetConfig("init", backbone, embedding_dim=state["net.fc.role_embedding.weight"].shape[1])
@@ -218,11 +248,15 @@ def infer_config(state: dict[str, torch.Tensor]) -> NetConfig:
 def module_from_state_dict(state: dict[str, torch.Tensor]) -> InitNet | RefineNet:
     """Build the matching module and load ``state`` strictly (training-only ``criterion.*`` dropped)."""
     kept = {k: v for k, v in state.items() if not k.startswith(IGNORED_PREFIXES)}
-    module = build_model(infer_config(kept))
+    try:
+        config = infer_config(kept)
+    except (KeyError, IndexError) as exc:
+        raise InputError(f"the state_dict lacks or misshapes the tensor {exc} of a GeoPose network") from None
+    module = build_model(config)
     try:
         module.load_state_dict(kept, strict=True)
     except RuntimeError as exc:
-        raise ValueError(f"the checkpoint does not match the GeoPose {module.config.kind} layout: {exc}") from None
+        raise InputError(f"the checkpoint does not match the GeoPose {module.config.kind} layout: {exc}") from None
     return module.eval()
 
 
@@ -235,9 +269,9 @@ def import_checkpoint(
     """
     checkpoint, out = Path(checkpoint), Path(out)
     if not checkpoint.is_file():
-        raise FileNotFoundError(f"checkpoint {checkpoint} does not exist")
+        raise InputError(f"checkpoint {checkpoint} does not exist")
     if out.suffix not in ("", MODEL_SUFFIX) and not out.is_dir():
-        raise ValueError(f"--out {out} must be a {MODEL_SUFFIX} file or a directory")
+        raise InputError(f"--out {out} must be a {MODEL_SUFFIX} file or a directory")
     manifest = load_manifest(manifest_path)
     official = official_entry(checkpoint, manifest)
     if official is not None:

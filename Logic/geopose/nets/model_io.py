@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from .manifest import MANIFEST_NAME, verify_manifest
+from ..errors import InputError
 from .models import InitNet, NetConfig, RefineNet, build_model
 
 MODEL_FORMAT = "geopose-model"
@@ -67,11 +67,11 @@ def save_model(
 def _read(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"model file {path} does not exist; import or train a model first")
+        raise InputError(f"model file {path} does not exist; import or train a model first")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for foreign files
-        raise ValueError(
+        raise InputError(
             f"{path} is not a GeoPose model file ({type(exc).__name__}); "
             "published Lightning checkpoints must first go through `geopose import-checkpoint`"
         ) from None
@@ -81,13 +81,13 @@ def _read(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, torch.Tens
             header = json.loads(payload["header"])
         except json.JSONDecodeError:
             header = None
-    if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT:
-        raise ValueError(
+    if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT or not isinstance(payload.get("state_dict"), dict):
+        raise InputError(
             f"{path} is not a GeoPose model file (no '{MODEL_FORMAT}' header); "
             "published Lightning checkpoints must first go through `geopose import-checkpoint`"
         )
     if header.get("format_version") != MODEL_FORMAT_VERSION:
-        raise ValueError(
+        raise InputError(
             f"{path} has model format version {header.get('format_version')}, this library reads "
             f"version {MODEL_FORMAT_VERSION}; update GeoPose or re-export the model"
         )
@@ -102,12 +102,15 @@ def read_model_header(path: str | os.PathLike) -> dict[str, Any]:
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> InitNet | RefineNet:
     """Rebuild the module described by a model file, load its weights strictly (float32), eval mode."""
     header, state = _read(path)
-    module = build_model(NetConfig.from_dict(header["architecture"]))
+    try:
+        module = build_model(NetConfig.from_dict(header["architecture"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"{path} has an unreadable architecture in its header ({exc}); re-export or re-import the model") from None
     state = {name: (t.float() if t.is_floating_point() else t) for name, t in state.items()}
     try:
         module.load_state_dict(state, strict=True)
     except RuntimeError as exc:
-        raise ValueError(f"{path}: weights do not match the architecture in its header: {exc}") from None
+        raise InputError(f"{path}: weights do not match the architecture in its header: {' '.join(str(exc).split())[:300]}") from None
     return module.to(device).eval()
 
 
@@ -115,29 +118,21 @@ def find_model_files(directory: str | os.PathLike) -> dict[str, Path]:
     """The Init and Refine model files of a directory, keyed ``"init"``/``"refine"`` by their headers."""
     directory = Path(directory)
     if not directory.is_dir():
-        raise FileNotFoundError(f"model directory {directory} does not exist")
+        raise InputError(f"model directory {directory} does not exist")
     found: dict[str, Path] = {}
     for candidate in sorted(directory.glob(f"*{MODEL_SUFFIX}")):
-        kind = read_model_header(candidate)["architecture"]["kind"]
+        architecture = read_model_header(candidate).get("architecture")
+        kind = architecture.get("kind") if isinstance(architecture, dict) else None
+        if kind not in ("init", "refine"):
+            raise InputError(f"{candidate} names no init/refine network in its header; remove it or re-export it")
         if kind in found:
-            raise ValueError(f"{directory} holds two {kind} models ({found[kind].name}, {candidate.name}); keep one")
+            raise InputError(f"{directory} holds two {kind} models ({found[kind].name}, {candidate.name}); keep one")
         found[kind] = candidate
     missing = [kind for kind in ("init", "refine") if kind not in found]
     if missing:
-        raise FileNotFoundError(
+        raise InputError(
             f"{directory} has no {' or '.join(missing)} model file (*{MODEL_SUFFIX}); "
             "import the published checkpoints with `geopose import-checkpoint` or train one"
         )
     return found
 
-
-def model_files(directory: str | os.PathLike) -> dict[str, Path]:
-    """Init and Refine files of a model folder, checksum-verified when it has a manifest."""
-    directory = Path(directory)
-    if (directory / MANIFEST_NAME).is_file():
-        found = verify_manifest(directory)
-        missing = [kind for kind in ("init", "refine") if kind not in found]
-        if missing:
-            raise FileNotFoundError(f"{directory / MANIFEST_NAME} lists no {' or '.join(missing)} model")
-        return {kind: found[kind] for kind in ("init", "refine")}
-    return find_model_files(directory)

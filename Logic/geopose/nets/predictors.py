@@ -24,7 +24,7 @@ from .. import contract as C
 from ..errors import InputError
 from ..resources import default_models_dir
 from .decoding import decode_init_pose, mirror_averaged_logits, residual_from_raw, select_view, view_labels
-from .manifest import MANIFEST_NAME, read_manifest, verify_manifest
+from .manifest import MANIFEST_NAME, read_manifest, verify_models
 from ..images import normalize_minmax
 
 __all__ = [
@@ -263,37 +263,48 @@ def _model_input(entry: dict) -> tuple[int, tuple[float, float]]:
     return render_px, (float(clip[0]), float(clip[1]))
 
 
-def load_models(models: str | os.PathLike | None = None, *, runtime: str = "torch", device: str = "cpu") -> ModelSet:
+def load_models(
+    models: str | os.PathLike | None = None, *, runtime: str = "torch", device: str = "cpu", allow_unverified: bool = False
+) -> ModelSet:
     """The networks of a models folder (default: the shipped models), every file checked against
-    ``manifest.json`` (size and SHA-256) before use. ``runtime`` ``torch`` runs the ``.pt`` model
-    files on ``device``; ``onnxruntime`` runs the ONNX graphs the manifest lists (CUDA provider
-    when ``device`` is CUDA and onnxruntime-gpu is installed)."""
+    ``manifest.json`` (size and SHA-256) before use (:func:`~geopose.nets.manifest.verify_models`;
+    ``allow_unverified``: a folder without a manifest, its ``.pt`` files unchecked). ``runtime``
+    ``torch`` runs the ``.pt`` model files on ``device``; ``onnxruntime`` runs the ONNX graphs the
+    manifest lists (CUDA provider when ``device`` is CUDA and onnxruntime-gpu is installed; an
+    unverified folder's ``.pt`` files are exported in memory)."""
     if runtime not in RUNTIMES:
         raise InputError(f"network runtime must be one of {RUNTIMES}, got {runtime!r}")
     folder = Path(models) if models is not None else default_models_dir()
-    if not (folder / MANIFEST_NAME).is_file():
-        raise InputError(f"{folder} has no {MANIFEST_NAME}: its model files cannot be verified; ship them with "
-                         "`geopose train ship` (writes the manifest) or use the shipped models")
-    manifest = read_manifest(folder)["models"]
-    fmt = "pt" if runtime == "torch" else "onnx"
-    paths = verify_manifest(folder, fmt)
-    missing = [k for k in ("init", "refine") if k not in paths]
-    if missing:
-        raise InputError(f"{folder / MANIFEST_NAME} lists no {' or '.join(missing)} {fmt} model")
-    inputs = {k: _model_input(manifest[k]) for k in ("init", "refine")}
+    listed = (folder / MANIFEST_NAME).is_file()
+    fmt = "onnx" if runtime == "onnxruntime" and listed else "pt"
+    paths = verify_models(folder, fmt, allow_unverified=allow_unverified)
+    if listed:
+        manifest = read_manifest(folder)["models"]
+        entries = {k: manifest[k] if fmt == "pt" else manifest[k]["onnx"] for k in paths}
+        files = {k: {"path": str(p), "sha256": entries[k]["sha256"], "format": fmt} for k, p in paths.items()}
+        inputs = {k: _model_input(manifest[k]) for k in ("init", "refine")}
+    else:
+        from .model_io import read_model_header
+
+        files = {k: {"path": str(p), "sha256": "unverified (no manifest)", "format": fmt} for k, p in paths.items()}
+        inputs = {k: _model_input(read_model_header(p).get("metadata", {})) for k, p in paths.items()}
     if inputs["init"] != inputs["refine"]:
-        raise InputError(f"{folder / MANIFEST_NAME}: Init and Refine declare different inputs ({inputs}); "
-                         "ship a matching pair")
-    entries = {k: manifest[k] if fmt == "pt" else manifest[k]["onnx"] for k in paths}
-    files = {k: {"path": str(p), "sha256": entries[k]["sha256"], "format": fmt} for k, p in paths.items()}
-    if runtime == "torch":
+        raise InputError(f"{folder}: Init and Refine declare different inputs ({inputs}); ship a matching pair")
+    if runtime == "torch" or fmt == "pt":
         from .model_io import load_model
 
-        dev = resolve_torch_device(device)
-        init, refine = torch_predictors(load_model(paths["init"], dev), load_model(paths["refine"], dev))
-        device = str(dev)
+        dev = resolve_torch_device(device) if runtime == "torch" else resolve_torch_device("cpu")
+        modules = {k: load_model(paths[k], dev) for k in ("init", "refine")}
+        if runtime == "torch":
+            init, refine = torch_predictors(modules["init"], modules["refine"])
+            device = str(dev)
+        else:
+            from .onnx_export import export_onnx
+
+            init, refine = onnx_predictors({k: export_onnx(m) for k, m in modules.items()}, use_cuda=device.startswith("cuda"))
     else:
         init, refine = onnx_predictors(paths, use_cuda=device.startswith("cuda"))
+    if runtime == "onnxruntime":
         device = "cuda" if device.startswith("cuda") else "cpu"
     render_px, clip = inputs["init"]
     return ModelSet(init, refine, render_px, clip, runtime, device, files)

@@ -14,6 +14,7 @@ from ..dsa import write_dsa_dicom
 from ..volume import Volume
 from .dsa import INJECTIONS, dsa_renderer, sample_biplane, simulate_dsa
 from .subject import make_subject
+from ..errors import InputError
 
 __all__ = ["register", "write_phantom"]
 
@@ -78,7 +79,7 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
 
 def _run(args: argparse.Namespace) -> int:
     if args.spacing_mm < 0.5:
-        raise ValueError(f"--spacing-mm must be at least 0.5 mm, got {args.spacing_mm}")
+        raise InputError(f"--spacing-mm must be at least 0.5 mm, got {args.spacing_mm}")
     t = write_phantom(args.seed, Path(args.out), spacing_mm=args.spacing_mm, injection=args.injection, max_matrix_px=args.max_matrix_px)
     print(f"phantom seed {args.seed} -> {args.out}: " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()))
     return 0

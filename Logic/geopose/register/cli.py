@@ -1,4 +1,8 @@
-"""``geopose register``: register a CTA to a PA + lateral DSA pair and write result.json + overlays."""
+"""``geopose register``: register a CTA to a PA + lateral DSA pair and write result.json + overlays.
+
+The output folder is checked, locked and cleared before any work (:class:`~geopose.outputs.OutputFolder`);
+the overlays are written atomically and ``result.json`` last, listing their checksums.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +14,12 @@ from ..cta import load_cta
 from ..cta.io import file_sha256
 from ..dsa import geometry_override_args, geometry_overrides_from_args, read_dsa
 from ..options import BACKENDS, DEVICES, RegistrationOptions
+from ..outputs import OutputFolder
 from .evaluate import load_truth, truth_metrics
-from .pipeline import register_case
+from .pipeline import register_case, resolve_engine
 from .progress import ConsoleProgress
-from .record import build_record, write_record
-from .report import write_overlays
+from .record import build_record
+from .report import OVERLAY_NAMES, write_overlays
 
 #: The options ``geopose register`` (and ``geopose bench``) take, by their RegistrationOptions names.
 OPTION_ARGS = ("backend", "device", "refine_steps", "iterations", "tto_px", "render_px", "model_clip_percentiles",
@@ -51,7 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hu-offset", type=float, default=0.0, help="added to the CTA's values to make HU (e.g. -1024)")
     p.add_argument("--cranium-mask", help="CTA cranium mask on the CTA grid (default: computed from the CTA)")
     p.add_argument("--segmentation", help="CTA vessel label map on the CTA grid (default: contrast threshold)")
-    p.add_argument("--models", help="folder with the Init and Refine model files and manifest (default: the shipped models)")
+    p.add_argument("--models", help="folder with the Init and Refine model files and their manifest.json (default: the shipped models)")
+    p.add_argument("--allow-unverified-models", action="store_true",
+                   help="use a --models folder without manifest.json (its files are not checksum-verified)")
     registration_option_args(p)
     p.add_argument("--out", required=True, help="output folder (result.json, overlay PNGs)")
     geometry_override_args(p, prefix="pa-")
@@ -62,8 +69,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     record = register_files(
         args.cta, args.dsa_pa, args.dsa_lat, args.out,
-        cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models, hu_offset=args.hu_offset,
-        options=options_from_args(args),
+        cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models,
+        allow_unverified_models=args.allow_unverified_models, hu_offset=args.hu_offset, options=options_from_args(args),
         overrides={k: geometry_overrides_from_args(args, prefix=f"{k}-") for k in ("pa", "lat")},
     )
     print_summary(record, Path(args.out))
@@ -79,38 +86,43 @@ def register_files(
     cranium_mask: str | Path | None = None,
     segmentation: str | Path | None = None,
     models: str | Path | None = None,
+    allow_unverified_models: bool = False,
     options: RegistrationOptions | None = None,
     overrides: dict[str, dict] | None = None,
     hu_offset: float = 0.0,
     progress=None,
 ) -> dict:
-    """Read the files, register, and write ``result.json`` and the overlays into ``out``; returns the record.
+    """Read the files, register, and write the overlays and then ``result.json`` into ``out``; returns the record.
 
-    A ``truth.json`` next to the CTA (a ``geopose phantom`` case) adds accuracy metrics.
+    ``out`` is checked, locked and cleared first (:class:`~geopose.outputs.OutputFolder`); a run that
+    fails or is killed leaves no ``result.json``. A ``truth.json`` next to the CTA (a ``geopose
+    phantom`` case) adds accuracy metrics. ``overrides[view]`` are ``read_dsa`` keywords.
     """
-    out = Path(out)
+    options = options or RegistrationOptions()
     overrides = overrides or {}
-    cta = load_cta(cta_path, hu_offset=hu_offset)
-    runs = {
-        "pa": read_dsa(dsa_pa, **overrides.get("pa", {})),
-        "lat": read_dsa(dsa_lat, **overrides.get("lat", {})),
-    }
-    cranium = load_cta(cranium_mask, check_hu=False) if cranium_mask else None
-    seg = load_cta(segmentation, check_hu=False) if segmentation else None
-    case = register_case(
-        cta, runs, models=models, options=options, cranium_mask=cranium, segmentation=seg,
-        progress=progress if progress is not None else ConsoleProgress(),
-    )
-    truth = load_truth(cta_path)
-    inputs = {"cta": {"path": str(cta_path), "sha256": cta.metadata.get("sha256")}}
-    for key, path in (("pa", dsa_pa), ("lat", dsa_lat)):
-        inputs[f"dsa_{key}"] = {"path": str(path), "sha256": runs[key].metadata.get("sha256")}
-    for name, path in (("cranium_mask", cranium_mask), ("segmentation", segmentation)):
-        if path:
-            inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
-    record = build_record(case, runs, inputs=inputs, truth_metrics=truth_metrics(case, runs, truth) if truth else None)
-    write_record(record, out / "result.json")
-    write_overlays(case, out, truth.carotid_points_mm if truth else None)
+    with OutputFolder(out, OVERLAY_NAMES) as folder:
+        cta = load_cta(cta_path, hu_offset=hu_offset)
+        runs = {
+            "pa": read_dsa(dsa_pa, **overrides.get("pa", {})),
+            "lat": read_dsa(dsa_lat, **overrides.get("lat", {})),
+        }
+        cranium = load_cta(cranium_mask, check_hu=False) if cranium_mask else None
+        seg = load_cta(segmentation, check_hu=False) if segmentation else None
+        _, _, model_set = resolve_engine(options, models, allow_unverified=allow_unverified_models)
+        case = register_case(
+            cta, runs, models=model_set, options=options, cranium_mask=cranium, segmentation=seg,
+            progress=progress if progress is not None else ConsoleProgress(),
+        )
+        truth = load_truth(cta_path)
+        inputs = {"cta": {"path": str(cta_path), "sha256": cta.metadata.get("sha256")}}
+        for key, path in (("pa", dsa_pa), ("lat", dsa_lat)):
+            inputs[f"dsa_{key}"] = {"path": str(path), "sha256": runs[key].metadata.get("sha256")}
+        for name, path in (("cranium_mask", cranium_mask), ("segmentation", segmentation)):
+            if path:
+                inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
+        record = build_record(case, runs, inputs=inputs, truth_metrics=truth_metrics(case, runs, truth) if truth else None)
+        write_overlays(case, folder, truth.carotid_points_mm if truth else None)
+        folder.commit(record)
     return record
 
 

@@ -111,10 +111,13 @@ class Engine:
         }
 
 
-def resolve_engine(options: RegistrationOptions, models: str | ModelSet | None = None) -> tuple[str, str, ModelSet]:
+def resolve_engine(
+    options: RegistrationOptions, models: str | ModelSet | None = None, *, allow_unverified: bool = False
+) -> tuple[str, str, ModelSet]:
     """``(backend, device, models)`` for ``options``: ``auto`` takes torch when it is installed,
     CUDA when present; the networks come from ``models`` (a folder, default the shipped models,
-    or an already loaded :class:`ModelSet`, which must match the backend)."""
+    or an already loaded :class:`ModelSet`, which must match the backend; ``allow_unverified``:
+    a folder without a manifest)."""
     has_torch = torch_available()
     backend = options.backend if options.backend != "auto" else ("torch" if has_torch else "onnxruntime")
     if backend == "torch" and not has_torch:
@@ -129,7 +132,7 @@ def resolve_engine(options: RegistrationOptions, models: str | ModelSet | None =
             raise InputError(f"the loaded models run on {models.runtime} but backend {backend!r} was asked for; "
                              "load them with the same runtime")
         return backend, device, models
-    return backend, device, load_models(models, runtime=backend, device=device)
+    return backend, device, load_models(models, runtime=backend, device=device, allow_unverified=allow_unverified)
 
 
 @contextmanager

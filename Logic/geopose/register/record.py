@@ -4,10 +4,8 @@ of a registration. Versioned: readers check ``schema`` and ``schema_version``.""
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import platform
 from dataclasses import asdict
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,7 +25,7 @@ SCHEMA = "geopose-result"
 #: mirror-averaged; 1: single-image logits.
 SCHEMA_VERSION = 3
 
-__all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "write_record", "library_versions", "patient_orientation"]
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
 #: A pixel axis is named by every patient axis it makes at most about 67.5 deg with (cosine >= 0.38),
 #: the nearest first, as DICOM PatientOrientation (0020,0020) does ("L", "LP", ...).
@@ -177,9 +175,3 @@ def build_record(
             record["views"][key]["truth"] = metrics
     return record
 
-
-def write_record(record: dict, path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(record, indent=1))
-    return path

@@ -11,10 +11,14 @@ from .. import viz
 from ..dsa.preprocess import resample_to_detector
 from ..geometry.detector import Detector
 from ..geometry.poses import project_points
+from ..outputs import OutputFolder, atomic_write
 from .evaluate import vessel_mask
 from .results import CaseRegistration
 
-__all__ = ["write_overlays"]
+__all__ = ["OVERLAY_NAMES", "write_overlays"]
+
+#: The overlay files of a PA + lateral registration.
+OVERLAY_NAMES = ("overlay_pa.png", "overlay_lat.png")
 
 VESSEL_COLOUR = (255, 60, 40)
 CENTRELINE_COLOUR = (60, 220, 255)
@@ -41,13 +45,19 @@ def _panel(case: CaseRegistration, key: str, stage: str, map_rgb: np.ndarray, de
     return viz.label_panel(rgb, f"{key.upper()}: {STAGE_TITLES[stage]}")
 
 
-def write_overlays(case: CaseRegistration, out_dir: str | Path, carotid_mm: np.ndarray | None = None) -> list[Path]:
-    """One PNG per view (``overlay_pa.png``, ``overlay_lat.png``): three stages side by side."""
-    out = []
+def write_overlays(case: CaseRegistration, out: OutputFolder | str | Path, carotid_mm: np.ndarray | None = None) -> list[Path]:
+    """One PNG per view (``overlay_pa.png``, ``overlay_lat.png``): three stages side by side, each
+    written atomically (into an :class:`~geopose.outputs.OutputFolder`, or a plain folder)."""
+    written = []
     for key, view in case.views.items():
         det = overlay_detector(view.prepared.tto_detector)
         source = view.prepared.tto_detector.resized(*view.prepared.map.shape)
         map_rgb = viz.to_rgb(resample_to_detector(view.prepared.map * view.prepared.mask, source, det))
-        panels = [_panel(case, key, stage, map_rgb, det, carotid_mm) for stage in STAGE_TITLES]
-        out.append(viz.save_png(viz.hstack(panels), Path(out_dir) / f"overlay_{key}.png"))
-    return out
+        image = viz.hstack([_panel(case, key, stage, map_rgb, det, carotid_mm) for stage in STAGE_TITLES])
+        name = f"overlay_{key}.png"
+        if isinstance(out, OutputFolder):
+            written.append(out.write_file(name, lambda p: viz.save_png(image, p)))
+        else:
+            Path(out).mkdir(parents=True, exist_ok=True)
+            written.append(atomic_write(Path(out) / name, lambda p: viz.save_png(image, p)))
+    return written

@@ -241,7 +241,7 @@ def test_time_optimise(
 
     def evaluate(size: str) -> tuple:
         poses = params.poses()
-        losses, scores = {}, {}
+        losses = {}
         rotations = {}
         total = torch.zeros((), dtype=torch.float64, device=dev)
         for name in names:

@@ -18,6 +18,7 @@ from .losses import LossWeights
 from .manifest import file_entry, model_entry, write_manifest
 from .population import folder_population, load_population, phantom_population, save_population
 from .trainer import TrainConfig, train
+from ..errors import InputError
 
 
 def _seeds(text: str) -> list[int]:
@@ -37,7 +38,7 @@ def _say(message: str) -> None:
 
 def _population(args: argparse.Namespace) -> int:
     if (args.phantoms is None) == (args.folder is None):
-        raise ValueError("give exactly one of --phantoms SEEDS or --folder DIR")
+        raise InputError("give exactly one of --phantoms SEEDS or --folder DIR")
     if args.phantoms is not None:
         subjects, report = phantom_population(args.phantoms, args.spacing, args.template_seed, progress=_say, workers=args.workers)
         recipe = {"source": "phantom", "seeds": args.phantoms, "spacing_mm": args.spacing, "template_seed": args.template_seed, "canonicalisation_error": report}
@@ -102,7 +103,7 @@ def _ship(args: argparse.Namespace) -> int:
         header = read_model_header(source)
         module = load_model(source)
         if module.config.kind != kind:
-            raise ValueError(f"{source} holds a {module.config.kind} network, expected {kind}")
+            raise InputError(f"{source} holds a {module.config.kind} network, expected {kind}")
         target = save_model(module, models_dir / f"geopose_{kind}.pt", header["metadata"], dtype="float16")
         graph = export_onnx(load_model(target), models_dir / f"geopose_{kind}.onnx", weights="float16")
         entries[kind] = model_entry(target, onnx=file_entry(graph), training=header["metadata"].get("training", {}))

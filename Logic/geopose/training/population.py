@@ -26,6 +26,7 @@ from ..cta.masks import cranium_mask_from_cta
 from ..render import hu_to_density
 from ..volume import Volume
 from .canonical import align_to_template, resample_to_template, rigid_error
+from ..errors import InputError
 
 #: Density channels of a training subject: total, inside the cranium, inside the vessels.
 CHANNELS = ("total", "cranium", "vessels")
@@ -54,9 +55,9 @@ class TrainingSubject:
 def subject_from_volumes(name: str, cta: Volume, cranium: np.ndarray, vessels: np.ndarray, seed: int = 0) -> TrainingSubject:
     """Channels and fiducials from a CTA (HU) and boolean cranium / vessel masks on its grid."""
     if cranium.shape != cta.array.shape or vessels.shape != cta.array.shape:
-        raise ValueError(f"{name}: masks {cranium.shape}/{vessels.shape} do not match the CTA grid {cta.array.shape}")
+        raise InputError(f"{name}: masks {cranium.shape}/{vessels.shape} do not match the CTA grid {cta.array.shape}")
     if not vessels.any():
-        raise ValueError(f"{name}: the vessel label map is empty; training needs labelled vessels")
+        raise InputError(f"{name}: the vessel label map is empty; training needs labelled vessels")
     density = torch.as_tensor(hu_to_density(np.ascontiguousarray(cta.array, dtype=np.float32)))
     channels = torch.stack((density, density * torch.as_tensor(cranium), density * torch.as_tensor(vessels)))
     kji = np.argwhere(vessels)
@@ -139,7 +140,7 @@ def folder_cases(folder: str | os.PathLike) -> list[tuple[Path, Path]]:
     """(CTA, vessel label map) pairs of a folder: ``NAME.nii.gz`` + ``NAME_vessels.nii.gz`` (or _labels/_label/_seg)."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise FileNotFoundError(f"training folder {folder} does not exist")
+        raise InputError(f"training folder {folder} does not exist")
     label_pattern = re.compile("(" + "|".join(LABEL_SUFFIXES) + r")\.(nii\.gz|nii|nrrd|mha)$")
     cases = []
     for path in sorted(folder.iterdir()):
@@ -147,13 +148,13 @@ def folder_cases(folder: str | os.PathLike) -> list[tuple[Path, Path]]:
             continue
         labels = _label_file(path)
         if labels is None:
-            raise FileNotFoundError(
+            raise InputError(
                 f"{path.name} has no vessel label map; add {path.name.split('.')[0]}_vessels.nii.gz "
                 f"(suffix one of {', '.join(LABEL_SUFFIXES)}) or remove the CTA from {folder}"
             )
         cases.append((path, labels))
     if not cases:
-        raise FileNotFoundError(f"{folder} holds no CTA files ({', '.join(IMAGE_EXTENSIONS)}) with vessel label maps")
+        raise InputError(f"{folder} holds no CTA files ({', '.join(IMAGE_EXTENSIONS)}) with vessel label maps")
     return cases
 
 
@@ -173,7 +174,7 @@ def folder_population(
         cta = load_cta(cta_path)
         labels = load_cta(label_path, check_hu=False)
         if labels.array.shape != cta.array.shape:
-            raise ValueError(f"{label_path.name} has grid {labels.array.shape}, its CTA {cta.array.shape}; resample the labels")
+            raise InputError(f"{label_path.name} has grid {labels.array.shape}, its CTA {cta.array.shape}; resample the labels")
         labels = cta.like(np.rint(labels.array).astype(np.int16))
         alignment = align_to_template(cranium_mask_from_cta(cta), template_mask)
         canon = resample_to_template(cta, template_cta, alignment.moving_to_template)
@@ -211,10 +212,10 @@ def load_population(path: str | os.PathLike, device: torch.device | str = "cpu")
     """Subjects and recipe from :func:`save_population` (densities back to float32 on ``device``)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"population cache {path} does not exist")
+        raise InputError(f"population cache {path} does not exist")
     payload = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(payload, dict) or payload.get("format") != CACHE_FORMAT or payload.get("version") != CACHE_VERSION:
-        raise ValueError(f"{path} is not a GeoPose training population (version {CACHE_VERSION}); rebuild it")
+        raise InputError(f"{path} is not a GeoPose training population (version {CACHE_VERSION}); rebuild it")
     subjects = [
         TrainingSubject(s["name"], s["channels"].float().to(device), s["ijk_to_world"].numpy(), s["fiducials_mm"].to(device))
         for s in payload["subjects"]
