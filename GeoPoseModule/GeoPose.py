@@ -196,6 +196,7 @@ class GeoPoseParameterNode:
     refineSteps: Annotated[int, WithinRange(*limits.REFINE_STEPS)] = _DEFAULT_OPTIONS.refine_steps
     iterations: Annotated[int, WithinRange(*limits.ITERATIONS)] = _DEFAULT_OPTIONS.iterations
     backend: Annotated[str, Choice(list(BACKENDS))] = _DEFAULT_OPTIONS.backend
+    independentViews: bool = _DEFAULT_OPTIONS.independent_views
     outputsPA: ViewOutputs
     outputsLAT: ViewOutputs
     resultsTable: vtkMRMLTableNode
@@ -478,7 +479,8 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
     @staticmethod
     def optionsFromParameters(p: GeoPoseParameterNode) -> RegistrationOptions:
         """The registration settings of the panel."""
-        return RegistrationOptions(backend=p.backend, device=p.device, refine_steps=p.refineSteps, iterations=p.iterations)
+        return RegistrationOptions(backend=p.backend, device=p.device, refine_steps=p.refineSteps, iterations=p.iterations,
+                                   independent_views=p.independentViews)
 
     @staticmethod
     def overridesFromParameters(p: GeoPoseParameterNode, key: str) -> dict:
@@ -635,8 +637,12 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         updated in place). Consumes, per view key ``pa``/``lat``: ``result.views[key].final_pose``
         (4x4 camera-to-centred, mm), ``.stage_poses``, ``.final_mncc``, ``.silhouette_dice``,
         ``.quality.flag`` / ``.quality.reasons``, ``.prepared.map`` (native MAP); and
-        ``result.runtimes_s``, ``result.engine``."""
+        ``result.runtimes_s``, ``result.engine``, ``result.registration``. The table shows each view's
+        pixel axes (DICOM PatientOrientation letters, docs/conventions.md section 7) for the registered
+        pose and for the run's own angles: they differ when the image is mirrored or the side wrong."""
         from geopose import mrml
+        from geopose.geometry.poses import pose_from_carm_angles
+        from geopose.register.record import patient_orientation
 
         scene = self._scene()
         given = dict(outputs or {})
@@ -665,7 +671,10 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
                     node=given.get(f"{key}Projection"),
                 )
             row = {"view": title, "mNCC": float(view.final_mncc), "silhouette Dice": float(view.silhouette_dice),
-                   "quality": view.quality.flag, "reasons": "; ".join(view.quality.reasons)}
+                   "quality": view.quality.flag, "reasons": "; ".join(view.quality.reasons),
+                   "registration": result.registration.mode, "TTO start": result.registration.chosen_start,
+                   "pixel axes (registered)": "\\".join(patient_orientation(poseCentred)),
+                   "pixel axes (DICOM angles)": "\\".join(patient_orientation(pose_from_carm_angles(run.angles)))}
             for stage, pose in view.stage_poses.items():
                 moved = _matrix(pose)[:3, 3] - poseCentred[:3, 3]
                 row[f"{stage} to final (mm)"] = float(math.sqrt((moved ** 2).sum()))

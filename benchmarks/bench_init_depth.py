@@ -1,9 +1,9 @@
 """Depth of the calibrated Init pose on four inputs of one view: the simulated DSA MAP
 (what registration sees), a DRR of the same CTA at the true pose (model geometry), that
 DRR masked by the MAP's cranium mask, and that DRR through the MAP's intensity chain
-(CONVENTIONS 5: percentile clip, mask, bilateral, min-max); also the MAP with a milder
+(docs/conventions.md 5: percentile clip, mask, bilateral, min-max); also the MAP with a milder
 clip for the networks (``preprocess_dsa(model_clip_percentiles=...)``). Depth = the pose parameter
-t_y (mm), the source-to-volume-centre distance along the central ray (CONVENTIONS 1-2).
+t_y (mm), the source-to-volume-centre distance along the central ray (docs/conventions.md 1-2).
 The columns separate geometry from appearance and name the preprocessing step that the
 network was not trained for. Held-out phantoms are written as DICOM/NIfTI and read back,
 as in ``geopose bench``. Prints a Markdown table; ``--doc`` writes it.
@@ -33,7 +33,7 @@ from geopose.register.calibration import calibrate, calibrated_init, render_mode
 from geopose.register.case import TTO_PX_CPU, VIEW_KEYS  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
 
-#: Index of the depth component in the pose translation ``t`` (CONVENTIONS 2: isopose t = (0, 650, 0)).
+#: Index of the depth component in the pose translation ``t`` (docs/conventions.md 2: isopose t = (0, 650, 0)).
 DEPTH_AXIS = 1
 
 
@@ -42,7 +42,7 @@ def depth_mm(pose: np.ndarray) -> float:
     return float(params_from_pose(np.asarray(pose, dtype=np.float64))[1][DEPTH_AXIS])
 
 
-#: A milder clip of the MAP for the networks' input than CONVENTIONS 5's 25th-75th.
+#: A milder clip of the MAP for the networks' input than docs/conventions.md 5's 25th-75th.
 LOOSE_CLIP_PERCENTILES = (2.0, 98.0)
 #: The inputs compared, in table order.
 INPUTS = (

@@ -36,7 +36,7 @@ from geopose.cta import load_cta, save_volume  # noqa: E402
 from geopose.phantom.cli import write_phantom  # noqa: E402
 from geopose.volume import Volume  # noqa: E402
 
-#: The paper's H100 runtimes (docs/conventions.md section 7), for comparison.
+#: The paper's H100 runtimes (docs/conventions.md section 8), for comparison.
 PAPER_S = {"calibration + init": 0.0218, "refine": 0.147, "tto": 2.0}
 STAGES = ("prepare", "calibration", "init", "refine", "tto", "score", "total")
 MARKER = "<!-- bench:pipeline -->"

@@ -4,7 +4,7 @@ rate over views and the mean rotation and translation errors. Prints a Markdown 
 ``--doc`` writes it.
 
     .venv/bin/python benchmarks/compare_bench.py docs/benchmark /tmp/clip_a /tmp/clip_b \\
-        --labels "25-75 (CONVENTIONS 5)" "2-98" --doc docs/benchmark/model_clip.md
+        --labels "25-75 (docs/conventions.md 5)" "2-98" --doc docs/benchmark/model_clip.md
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ from geopose.volume import Volume  # noqa: E402
 
 HEADSQ_HEADER = REPO.parent / "shared" / "data" / "headsq" / "quarter_sidecar.mhd"
 
-#: Pose sampling spread around the isoposes (CONVENTIONS section 6): rad per Euler angle, mm.
+#: Pose sampling spread around the isoposes (docs/conventions.md section 6): rad per Euler angle, mm.
 ROTATION_SD_RAD = 0.2
 TRANSLATION_SD_MM = (25.0, 75.0, 25.0)
 
@@ -173,7 +173,7 @@ def headsq_volume(n: int = 256) -> Volume:
 
 
 def validation_poses(n_random: int = 5, seed: int = 0, dtype=torch.float64) -> tuple[list[str], RigidTransform]:
-    """The three isoposes plus ``n_random`` perturbed ones (Gaussian, CONVENTIONS section 6)."""
+    """The three isoposes plus ``n_random`` perturbed ones (Gaussian, docs/conventions.md section 6)."""
     g = torch.Generator().manual_seed(seed)
     names = ["LAT- iso", "PA iso", "LAT+ iso"]
     views = [C.VIEW_LAT_MINUS, C.VIEW_PA, C.VIEW_LAT_PLUS]

@@ -1,7 +1,7 @@
 """The geometry and model contract shared with the published GeoPose models.
 
 Every number that fixes what a pose, an image or a checkpoint *means* is named
-here once (see ``shared/CONVENTIONS.md``). Units are in the names: ``_MM`` for
+here once (see ``docs/conventions.md``). Units are in the names: ``_MM`` for
 millimetres, ``_RAD`` for radians, ``_DEG`` for degrees, ``_PX`` for pixels.
 """
 
@@ -62,7 +62,7 @@ BIPLANAR_WEIGHT: Final = 0.1
 
 # ------------------------------------------------------- DSA preprocessing
 MAP_CLIP_PERCENTILES: Final = (25.0, 75.0)
-#: Ours, not the paper's: the MAP's vessel image keeps the percentiles (over the DSA cranium
+#: Ours, not the paper's: the vessel image (temporal mean) keeps the percentiles (over the DSA cranium
 #: mask) between which the opacified vessels stand out of the noise (docs/objective.md).
 VESSEL_CLIP_PERCENTILES: Final = (90.0, 99.9)
 BILATERAL_SPATIAL_SIGMA_PX: Final = 11.0

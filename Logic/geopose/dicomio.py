@@ -33,7 +33,9 @@ __all__ = ["read_dataset", "decode_frames", "is_image_storage", "is_non_image", 
 
 UNCOMPRESSED = {U.ImplicitVRLittleEndian, U.ExplicitVRLittleEndian, U.DeflatedExplicitVRLittleEndian, U.ExplicitVRBigEndian}
 JPEG_SYNTAXES = {U.JPEGBaseline8Bit, U.JPEGExtended12Bit, U.JPEGLossless, U.JPEGLosslessSV1, U.JPEGLSLossless, U.JPEGLSNearLossless}
-J2K_SYNTAXES = {U.JPEG2000Lossless, U.JPEG2000, U.HTJ2KLossless, U.HTJ2KLosslessRPCL, U.HTJ2K}
+#: pydicom 2.4 (Slicer 5.8, 5.10) names no HTJ2K syntaxes; their UIDs are spelled out.
+J2K_SYNTAXES = {U.JPEG2000Lossless, U.JPEG2000, U.UID("1.2.840.10008.1.2.4.201"), U.UID("1.2.840.10008.1.2.4.202"),
+                U.UID("1.2.840.10008.1.2.4.203")}
 _REMEDY_COPY = "copy the file again from the archive or re-export it"
 _REMEDY_DECOMPRESS = "decompress it (e.g. gdcmconv --raw) and load the uncompressed file"
 

@@ -34,7 +34,7 @@ def check_clip_percentiles(percentiles: Any) -> tuple[float, float]:
         raise InputError(f"clip percentiles must be two numbers (lo, hi), got {percentiles!r}") from None
     if not L.CLIP_PERCENTILE[0] <= lo < hi <= L.CLIP_PERCENTILE[1]:
         raise InputError(f"clip percentiles ({lo:g}, {hi:g}) must satisfy 0 <= lo < hi <= 100, e.g. (2, 98) or "
-                         f"CONVENTIONS 5's {C.MAP_CLIP_PERCENTILES}")
+                         f"docs/conventions.md 5's {C.MAP_CLIP_PERCENTILES}")
     return lo, hi
 
 
@@ -58,7 +58,7 @@ class RegistrationOptions:
     #: detector (None: each model's training size from its manifest).
     render_px: int | None = None
     #: Percentiles the networks' MAP is clipped to (None: each model's manifest, else
-    #: CONVENTIONS 5); the TTO target always keeps CONVENTIONS 5.
+    #: docs/conventions.md 5); the TTO target always keeps docs/conventions.md 5.
     model_clip_percentiles: tuple[float, float] | None = None
     #: Voxel size (mm) of the working copy of the CTA the renderers sample (None: the
     #: CTA's own, coarsened where that is finer than the images need).
@@ -66,7 +66,7 @@ class RegistrationOptions:
     #: Register each view on its own (the published pipeline) instead of one patient pose
     #: seen by both arms of the biplane system (their relative geometry from the DICOM angles).
     independent_views: bool = False
-    #: Add the PA/lateral orthogonality term to the TTO objective (CONVENTIONS 5; independent views).
+    #: Add the PA/lateral orthogonality term to the TTO objective (docs/conventions.md 5; independent views).
     biplanar: bool = False
 
     def __post_init__(self) -> None:

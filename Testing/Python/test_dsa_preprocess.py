@@ -1,4 +1,4 @@
-"""DSA preprocessing (CONVENTIONS 5) on synthetic inputs with known answers."""
+"""DSA preprocessing (docs/conventions.md 5) on synthetic inputs with known answers."""
 
 from __future__ import annotations
 
@@ -167,7 +167,7 @@ def test_preprocess_dsa_end_to_end(photometric):
     assert 0.0 == prep.model_image.min() and prep.model_image.max() == pytest.approx(1.0)
     diameter_px = prep.model_mask[128].sum()
     assert diameter_px == pytest.approx(160 * C.MODEL_SDD_MM / 1100.0 / C.MODEL_PIXEL_SPACING_MM, abs=2)
-    # masked before the bilateral filter (CONVENTIONS order): the outside stays near 0
+    # masked before the bilateral filter (the order of docs/conventions.md 5): the outside stays near 0
     assert prep.model_image[prep.model_mask == 0].max() < 0.05
     # TTO target at the acquisition SDD, 120 px along the longer side
     assert prep.tto_detector.sdd_mm == 1100.0 and prep.tto_detector.shape == (100, 120)

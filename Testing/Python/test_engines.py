@@ -103,10 +103,12 @@ def test_a_render_samples_the_level_its_pixels_resolve():
     cta, _, _ = _small_volume()
     fine = Volume(np.repeat(np.repeat(np.repeat(cta.array, 2, 0), 2, 1), 2, 2), cta.ijk_to_ras @ np.diag([0.5, 0.5, 0.5, 1]))
     renderer = NumpyRenderer(RenderVolume(fine))
-    # The 96-px network render: 3.2 mm pixels at the detector, 2.04 mm at the volume centre; voxels
-    # of (1.0, 1.1, 1.25) mm double only along i.
+    # The 96-px network render: 3.2 mm pixels at the detector, 2.04 mm at the volume centre; voxels up
+    # to 1.5 footprints (3.06 mm): (1.0, 1.1, 1.25) mm voxels double along every axis, not more.
     model = Detector.model().resized(96)
-    assert renderer.level_for_pose(isopose(C.VIEW_PA), model).factors == (2, 1, 1)
+    assert renderer.voxel_per_pixel == 1.5
+    assert renderer.level_for_pose(isopose(C.VIEW_PA), model).factors == (2, 2, 2)
+    # The 256-px model detector: 0.76 mm footprints, 1.15 mm voxels at most: the CTA's own grid.
     assert renderer.level_for_pose(isopose(C.VIEW_PA), Detector.model()).factors == (1, 1, 1)
 
 

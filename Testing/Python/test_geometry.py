@@ -95,7 +95,7 @@ def test_rigid_compose_inverse_apply():
         RigidTransform(torch.eye(3))
 
 
-# The isopose table of CONVENTIONS.md section 2: source, detector centre, row-0 and column-0 directions.
+# The isopose table of docs/conventions.md section 2: source, detector centre, row-0 and column-0 directions.
 ISOPOSE_TABLE = {
     C.VIEW_PA: ((0, 650, 0), (0, -370, 0), (0, 0, 1), (1, 0, 0)),
     C.VIEW_LAT_PLUS: ((-650, 0, 0), (370, 0, 0), (0, 0, 1), (0, 1, 0)),

@@ -51,7 +51,8 @@ def _result(poses: dict[str, np.ndarray]) -> SimpleNamespace:
             silhouette_dice=0.9, quality=SimpleNamespace(flag="ok" if n else "doubtful", reasons=() if n else ("low mNCC",)),
             prepared=SimpleNamespace(map=np.full(DET.shape, 7.0 + n, np.float32)),
         )
-    return SimpleNamespace(views=views, runtimes_s={"init": 0.02, "total": 1.5}, engine={"backend": "torch", "device": "cpu"})
+    return SimpleNamespace(views=views, runtimes_s={"init": 0.02, "total": 1.5}, engine={"backend": "torch", "device": "cpu"},
+                           registration=SimpleNamespace(mode="biplane-rigid", chosen_start="Refine"))
 
 
 def test_module_metadata(module):
@@ -98,6 +99,11 @@ def test_add_result_nodes_places_every_output(module):
     assert float(table.GetCellText(1, cols.index("mNCC"))) == pytest.approx(0.6)
     assert float(table.GetCellText(0, cols.index("init to final (mm)"))) == pytest.approx(5.0)
     assert float(table.GetCellText(0, cols.index("runtime total (s)"))) == 1.5
+    assert table.GetCellText(0, cols.index("registration")) == "biplane-rigid"
+    # The pixel axes of the registered pose and of the run's angles (PA at primary 0: L\F; LAT at -90: A\F).
+    assert table.GetCellText(0, cols.index("pixel axes (DICOM angles)")) == "L\\F"
+    assert table.GetCellText(1, cols.index("pixel axes (DICOM angles)")) == "A\\F"
+    assert table.GetCellText(0, cols.index("pixel axes (registered)")) == "L\\F"
     assert logic.summary(out).splitlines() == ["PA: mNCC 0.500, doubtful", "LAT: mNCC 0.600, ok"]
     # Inputs unchanged.
     np.testing.assert_array_equal(mrml.volume_from_node(cta_node).array, before[0])

@@ -62,10 +62,12 @@ class OracleInit:
         self.answers = list(answers)
         self.images: list[np.ndarray] = []
 
-    def predict(self, image, is_lateral=None, mirror=True):
+    def predict(self, image, is_lateral=None, mirror=True, view=None):
         self.images.append(image)
         pose = np.asarray(self.answers.pop(0), dtype=np.float64).reshape(1, 4, 4)
-        view = np.array([C.VIEW_LAT_PLUS if bool(np.asarray(is_lateral).reshape(-1)[0]) else C.VIEW_PA])
+        if view is None:
+            view = C.VIEW_LAT_PLUS if bool(np.asarray(is_lateral).reshape(-1)[0]) else C.VIEW_PA
+        view = np.array([view]).reshape(1)
         return pose, view, np.eye(3)[view]
 
 
@@ -129,9 +131,11 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
     for key in ("pa", "lat"):
         view = result.views[key]
         np.testing.assert_allclose(view.init.pose_native, start[key], atol=1e-6)
-        # Identity proposals never strictly improve mNCC: one proposal, rejected.
+        # Identity proposals never strictly improve mNCC: one proposal, rejected. The refined pose is
+        # the fused patient pose of both views (equal up to the DICOM angles' stored precision).
         assert len(view.refine.proposals) == 1 and not view.refine.proposals[0].accepted
-        np.testing.assert_allclose(view.refine.pose, start[key], atol=1e-6)
+        np.testing.assert_allclose(view.refine.pose[:3, :3], start[key][:3, :3], atol=1e-3)
+        np.testing.assert_allclose(view.refine.pose[:3, 3], start[key][:3, 3], atol=0.5)
     assert refine.calls == 2
     assert {"prepare", "calibration", "init", "refine", "tto", "done"} <= set(stages)
     assert result.engine["render_px"] == ORACLE_RENDER_PX

@@ -25,7 +25,10 @@ from ..render import DRR
 from ..volume import Volume
 from ..errors import InputError
 
-__all__ = ["BenchCase", "phantom_case", "headsq_case", "load_headsq", "training_seeds", "seed_range", "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX"]
+__all__ = [
+    "BenchCase", "phantom_case", "real_head_case", "headsq_case", "ge_head_case", "load_headsq", "training_seeds", "seed_range",
+    "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX",
+]
 
 #: The VTK headsq file stores raw values: HU = value - 1024.
 HEADSQ_HU_OFFSET = -1024.0
@@ -100,12 +103,11 @@ def load_headsq(path: str | Path) -> Volume:
     return Volume(raw.array, HEADSQ_HEADER_FIX @ raw.ijk_to_ras, dict(raw.metadata, header_fix="180 deg about A"))
 
 
-def headsq_case(path: str | Path, seed: int = 0) -> BenchCase:
-    """The real head CT ``headsq`` (no contrast) with a PA + lateral run simulated from it
-    at sampled clinical geometries: the runs hold motion residue and noise only, so the
-    measurable results are pose errors, NCC and the cranium silhouette. The head is tilted
-    on the angiography table as in the phantom world (``table_tilt``)."""
-    cta = load_headsq(path)
+def real_head_case(name: str, cta: Volume, seed: int, notes: list[str]) -> BenchCase:
+    """A real head CT (HU, no contrast) with a PA + lateral run simulated from it at sampled
+    clinical geometries, the head tilted on the angiography table as in the phantom world
+    (``table_tilt``): the runs hold motion residue and noise only, so the measurable results
+    are pose errors, NCC and the cranium silhouette."""
     cranium = cranium_mask_from_cta(cta)
     rng = np.random.default_rng([seed, 7])
     k, j, i = np.nonzero(cranium.array)
@@ -119,8 +121,22 @@ def headsq_case(path: str | Path, seed: int = 0) -> BenchCase:
         acq = replace(sample_acquisition(rng, role), table_rotation=table)
         sim = simulate_dsa(_RealHead(seed), acq, acq.pose(iso), rng, drr=drr, max_matrix_px=BENCH_MATRIX_PX)
         runs[key], poses[key] = sim.run, sim.pose
-    notes = [
-        "headsq: real CT without contrast, 3.2 x 3.2 x 1.5 mm, header turned 180 deg about A (it is upside down)",
-        "runs simulated from the CT itself (motion residue + noise, no arteries): no mPCD or clDice",
-    ]
-    return BenchCase("headsq", cta, cranium, None, runs, poses, None, notes)
+    notes = notes + ["runs simulated from the CT itself (motion residue + noise, no arteries): no mPCD or clDice"]
+    return BenchCase(f"{name}-{seed}", cta, cranium, None, runs, poses, None, notes)
+
+
+def headsq_case(path: str | Path, seed: int = 0) -> BenchCase:
+    """The real head CT ``headsq`` (``quarter_sidecar.mhd``) with simulated runs (:func:`real_head_case`)."""
+    return real_head_case("headsq", load_headsq(path), seed, [
+        "headsq: real CT without contrast, 3.2 x 3.2 x 1.5 mm, header turned 180 deg about A (it is upside down)"])
+
+
+def ge_head_case(folder: str | Path, seed: int = 0) -> BenchCase:
+    """The real GE head CT (a DICOM series with gantry tilt, resampled by ``load_cta``) with
+    simulated runs (:func:`real_head_case`)."""
+    cta = load_cta(folder)
+    geo = cta.metadata.get("slice_geometry", {})
+    how = (f"{geo['reason']} ({geo.get('gantry_tilt_deg', 0):.1f} deg), resampled onto {geo['slice_spacing_mm']:.2f} mm slices"
+           if geo.get("resampled") else "regular slices")
+    spacing = " x ".join(f"{s:.2f}" for s in cta.spacing_mm)
+    return real_head_case("ge-head", cta, seed, [f"GE head CT (DICOM, {spacing} mm): {how}"])

@@ -19,9 +19,9 @@ from ..errors import InputError
 from ..register.cli import options_from_args, registration_option_args
 from ..register.pipeline import resolve_engine
 from ..resources import default_models_dir
-from .cases import headsq_case, phantom_case, training_seeds
+from .cases import ge_head_case, headsq_case, phantom_case, training_seeds
 from .report import convergence_figure, markdown, summarise
-from .run import BenchSettings, evaluate_case, row_names
+from .run import DRIFT_ROW, LEARNED_ROW, NATIVE_TTO_ROW, BenchSettings, evaluate_case, row_names
 
 #: First held-out phantom seed (training populations use small seeds; checked at run time).
 DEFAULT_SEED_START = 5000
@@ -38,7 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--long-subjects", type=int, help="subjects that also get the long native TTO (default: all)")
     p.add_argument("--long-iterations", type=int, default=400, help="long native TTO budget (0: skip)")
     p.add_argument("--spacing-mm", type=float, default=1.0, help="phantom voxel size (mm)")
-    p.add_argument("--headsq", help="the real head CT headsq (quarter_sidecar.mhd) for a transfer run")
+    p.add_argument("--headsq", help="the real head CT headsq (quarter_sidecar.mhd) for real-anatomy rows")
+    p.add_argument("--ge-head", help="the real GE head CT (its DICOM series folder) for real-anatomy rows")
+    p.add_argument("--real-seeds", type=int, default=3, help="simulated run pairs per real head")
     p.add_argument("--models", help="model folder with its manifest.json (default: the shipped models)")
     p.add_argument("--allow-unverified-models", action="store_true",
                    help="use a --models folder without manifest.json (its files are not checksum-verified)")
@@ -82,13 +84,16 @@ def run(args: argparse.Namespace) -> int:
             )
             cases.append(result)
             elapsed = time.perf_counter() - t_start
-            row = f"Init + greedy Refine + {args.iterations} TTO"
+            row = LEARNED_ROW.format(n=args.iterations)
             mpcd = [result["rows"][row][v].get("mpcd_mm") for v in ("pa", "lat")]
-            print(f"[{i + 1}/{len(seeds)}] {tag}: greedy+TTO mPCD PA {mpcd[0]:.2f} / LAT {mpcd[1]:.2f} mm; "
+            print(f"[{i + 1}/{len(seeds)}] {tag}: biplane greedy + TTO mPCD PA {mpcd[0]:.2f} / LAT {mpcd[1]:.2f} mm; "
                   f"elapsed {elapsed / 60:.1f} min", flush=True)
-        transfer = None
-        if args.headsq:
-            transfer = _load_or_run(out / "cases" / "headsq.json", lambda: evaluate_case(headsq_case(args.headsq), models, settings))
+        real = []
+        for name, source, make in (("headsq", args.headsq, headsq_case), ("ge-head", args.ge_head, ge_head_case)):
+            for seed in range(args.real_seeds if source else 0):
+                real.append(_load_or_run(out / "cases" / f"{name}-{seed}.json",
+                                         lambda: evaluate_case(make(source, seed), models, settings, long=False)))
+                print(f"real head {name} seed {seed} done; elapsed {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
     summary = summarise(cases, args.iterations)
     header = (
         f"# GeoPose benchmark on {len(cases)} held-out phantom subjects\n\n"
@@ -97,11 +102,14 @@ def run(args: argparse.Namespace) -> int:
         f"{os.cpu_count()} CPUs), geopose {__version__}; "
         f"long native TTO on {min(n_long, len(cases))} subjects.\n\n"
         f"Reproduce: `geopose bench --subjects {args.subjects} --long-subjects {n_long} --spacing-mm {args.spacing_mm:g} "
-        f"--out {out}{' --headsq ' + args.headsq if args.headsq else ''}`"
+        f"--out {out}{' --headsq ' + args.headsq if args.headsq else ''}{' --ge-head ' + args.ge_head if args.ge_head else ''}"
+        f"{' --real-seeds ' + str(args.real_seeds) if real else ''}`"
     )
-    (out / "bench.md").write_text(markdown(summary, header, transfer))
-    (out / "bench.json").write_text(json.dumps({"summary": summary, "cases": cases, "transfer": transfer}, indent=1))
-    curve_rows = [r for r in row_names(settings) if r.startswith(("native + ", "Init + greedy Refine + "))]
+    (out / "bench.md").write_text(markdown(summary, header, real, args.iterations))
+    (out / "bench.json").write_text(json.dumps({"summary": summary, "cases": cases, "real_heads": real}, indent=1))
+    n = args.iterations
+    curve_rows = [r for r in row_names(settings) if r in (LEARNED_ROW.format(n=n), NATIVE_TTO_ROW.format(n=n), DRIFT_ROW.format(n=n))
+                  or r.startswith("DICOM angles + ") and r != NATIVE_TTO_ROW.format(n=n)]
     convergence_figure(cases, curve_rows, out / "tto_convergence.png")
     print((out / "bench.md").read_text())
     return 0

@@ -1,11 +1,18 @@
 """Evaluate every operating point of the method on one benchmark case.
 
-Rows (the paper's tables): the native acquisition pose, calibrated Init, Init + one
-Refine update, Init + greedy Refine, each of those + ``iterations`` TTO steps, and
-native + ``long_iterations`` TTO steps (0 skips it). The case is registered once by
-:func:`geopose.register.register_case` (its Init, greedy and greedy + TTO poses are
-rows); the other TTO rows run the same TTO stage from the other starts. Poses are
-camera-to-centred-native ``(4, 4)`` (mm); metrics as ``geopose.metrics``.
+Rows:
+
+* ``DICOM angles``: the acquisition's own geometry (the native start), and ``DICOM angles +
+  n TTO`` from it with the default TTO (one patient pose): what the networks add;
+* ``biplane: Init``, ``biplane: greedy Refine``, ``biplane: greedy Refine + n TTO``: the
+  default registration (one patient pose seen by both arms; :func:`register_case`);
+* ``independent: Init``, ``... + Refine x1``, ``... greedy Refine``, ``... greedy Refine + n
+  TTO``: the published pipeline (each view on its own, the paper's objective and schedule);
+* ``truth + n TTO``: the default TTO started at the true pose: how far the objective's
+  optimum lies from the truth (drift);
+* ``DICOM angles + long TTO`` (``long_iterations``; 0 skips it).
+
+Poses are camera-to-centred-native ``(4, 4)`` (mm); metrics as ``geopose.metrics``.
 """
 
 from __future__ import annotations
@@ -15,10 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..geometry.poses import pose_from_carm_angles
 from ..metrics.similarity import ncc
 from ..nets.predictors import ModelSet
 from ..options import RegistrationOptions
+from ..register.biplane import nominal_poses, patient_pose
 from ..register.case import VIEW_KEYS, silhouette_dice
 from ..register.evaluate import carotid_mpcd, evaluate_pose
 from ..register.pipeline import register_case, torch_renderer_for, tto_views
@@ -26,7 +33,13 @@ from ..register.results import CaseRegistration
 from ..register.tto import TTOSchedule, test_time_optimise
 from .cases import BenchCase
 
-__all__ = ["BenchSettings", "row_names", "evaluate_case"]
+__all__ = ["BenchSettings", "row_names", "evaluate_case", "LEARNED_ROW", "NATIVE_TTO_ROW", "DRIFT_ROW", "INSTANT_ROW"]
+
+#: The default registration's rows (the targets refer to them).
+INSTANT_ROW = "biplane: greedy Refine"
+LEARNED_ROW = "biplane: greedy Refine + {n} TTO"
+NATIVE_TTO_ROW = "DICOM angles + {n} TTO"
+DRIFT_ROW = "truth + {n} TTO (drift)"
 
 
 @dataclass(frozen=True)
@@ -40,10 +53,15 @@ class BenchSettings:
 def row_names(settings: BenchSettings, long: bool = True) -> list[str]:
     """Row labels in table order (the long-budget row only when ``long``)."""
     n = settings.options.iterations
-    starts = ["native", "Init", "Init + Refine x1", "Init + greedy Refine"]
-    rows = starts + [f"{s} + {n} TTO" for s in starts]
+    rows = [
+        "DICOM angles", NATIVE_TTO_ROW.format(n=n),
+        "biplane: Init", INSTANT_ROW, LEARNED_ROW.format(n=n),
+        "independent: Init", "independent: Init + Refine x1", "independent: greedy Refine",
+        f"independent: greedy Refine + {n} TTO",
+        DRIFT_ROW.format(n=n),
+    ]
     if long and settings.long_iterations > 0:
-        rows.append(f"native + {settings.long_iterations} TTO")
+        rows.append(f"DICOM angles + {settings.long_iterations} TTO")
     return rows
 
 
@@ -77,41 +95,48 @@ def _curves(case: BenchCase, trace: list[dict]) -> dict:
 
 def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *, long: bool = True) -> dict:
     """All rows for ``case``: ``{"rows": {row: {view: metrics}}, "views": ..., "runtimes_s": ..., "curves": ...}``."""
-    options = settings.options
+    options = settings.options.replace(independent_views=False)
     n = options.iterations
-    reg = register_case(case.cta, case.runs, models=models, options=options, cranium_mask=case.cranium,
-                        segmentation=case.vessels)
-    times = {name: reg.runtimes_s[name] for name in ("prepare", "calibration", "init", "refine")}
-    times["Init (both views)"] = times.pop("init")
-    times["greedy Refine"] = times.pop("refine")
-    times[f"{n} TTO from Init + greedy Refine"] = reg.runtimes_s["tto"]
-    views = reg.views
-    starts = {
-        "native": {k: pose_from_carm_angles(case.runs[k].angles) for k in VIEW_KEYS},
-        "Init": {k: views[k].init.pose_native for k in VIEW_KEYS},
+    masks = dict(cranium_mask=case.cranium, segmentation=case.vessels)
+    joint = register_case(case.cta, case.runs, models=models, options=options, **masks)
+    paper = register_case(case.cta, case.runs, models=models, options=options.replace(independent_views=True), **masks)
+    times = {f"{stage} (biplane)": joint.runtimes_s[stage] for stage in ("prepare", "calibration", "init", "refine", "tto", "total")}
+    times |= {f"{stage} (independent)": paper.runtimes_s[stage] for stage in ("refine", "tto", "total")}
+    rig = nominal_poses(case.runs)
+    poses: dict[str, dict[str, np.ndarray]] = {
+        "DICOM angles": dict(rig),
+        "biplane: Init": {k: joint.views[k].init_pose for k in VIEW_KEYS},
+        INSTANT_ROW: {k: joint.views[k].refine.pose for k in VIEW_KEYS},
+        "independent: Init": {k: paper.views[k].init_pose for k in VIEW_KEYS},
         # one Refine update applied unconditionally: the first proposal of the greedy run
-        "Init + Refine x1": {k: views[k].refine.proposals[0].pose if views[k].refine.proposals else views[k].refine.pose
-                             for k in VIEW_KEYS},
-        "Init + greedy Refine": {k: views[k].refine.pose for k in VIEW_KEYS},
+        "independent: Init + Refine x1": {k: (paper.views[k].refine.proposals or [paper.views[k].refine])[0].pose
+                                          for k in VIEW_KEYS},
+        "independent: greedy Refine": {k: paper.views[k].refine.pose for k in VIEW_KEYS},
     }
-    poses: dict[str, dict[str, np.ndarray]] = dict(starts)
     curves: dict[str, dict] = {}
-    budgets = [(name, n) for name in ("native", "Init", "Init + Refine x1")]
-    if long and settings.long_iterations > 0:
-        budgets.append(("native", settings.long_iterations))
-    if reg.tto is not None:
-        poses[f"Init + greedy Refine + {n} TTO"] = {k: views[k].final_pose for k in VIEW_KEYS}
-        curves[f"Init + greedy Refine + {n} TTO"] = _curves(case, reg.tto.trace)
-        tto_renderer = torch_renderer_for(reg.renderer)
-        for name, budget in budgets:
+    if joint.tto is not None:
+        poses[LEARNED_ROW.format(n=n)] = {k: joint.views[k].final_pose for k in VIEW_KEYS}
+        poses[f"independent: greedy Refine + {n} TTO"] = {k: paper.views[k].final_pose for k in VIEW_KEYS}
+        curves[LEARNED_ROW.format(n=n)] = _curves(case, joint.tto.trace)
+        tto_renderer = torch_renderer_for(joint.renderer)
+        views = {k: joint.views[k].prepared for k in VIEW_KEYS}
+        budgets = [(NATIVE_TTO_ROW.format(n=n), rig, n), (DRIFT_ROW.format(n=n), case.true_poses, n)]
+        if long and settings.long_iterations > 0:
+            budgets.append((f"DICOM angles + {settings.long_iterations} TTO", rig, settings.long_iterations))
+        for name, start, budget in budgets:
+            X = patient_pose(start["pa"], rig["pa"])
             t0 = time.perf_counter()
-            result = test_time_optimise(tto_renderer, tto_views({k: views[k].prepared for k in VIEW_KEYS}, starts[name]), TTOSchedule(budget),
-                                        biplanar=options.biplanar)
-            times[f"{budget} TTO from {name}"] = time.perf_counter() - t0
-            poses[f"{name} + {budget} TTO"] = dict(result.poses)
-            curves[f"{name} + {budget} TTO"] = _curves(case, result.trace)
-    rows = {row: {k: _metrics(reg, case, k, p[k]) for k in VIEW_KEYS} for row, p in poses.items()}
-    view_info = {k: {"true_view": case.runs[k].view_label, "init_view": views[k].init.view,
-                     "greedy_accepted": views[k].refine.accepted} for k in VIEW_KEYS}
-    return {"case": case.name, "notes": case.notes + reg.notes, "rows": rows, "views": view_info, "runtimes_s": times,
-            "curves": curves, "device": reg.engine["device"], "engine": reg.engine}
+            result = test_time_optimise(tto_renderer, tto_views(views, {k: X @ rig[k] for k in VIEW_KEYS}),
+                                        TTOSchedule(budget), rig=rig)
+            times[f"{name}"] = time.perf_counter() - t0
+            poses[name] = dict(result.poses)
+            curves[name] = _curves(case, result.trace)
+    rows = {row: {k: _metrics(joint, case, k, p[k]) for k in VIEW_KEYS} for row, p in poses.items()}
+    view_info = {k: {"true_view": case.runs[k].view_label, "init_view": paper.views[k].init.view,
+                     "greedy_accepted": joint.views[k].refine.accepted} for k in VIEW_KEYS}
+    registration = joint.registration
+    return {"case": case.name, "notes": case.notes + joint.notes, "rows": rows, "views": view_info, "runtimes_s": times,
+            "curves": curves, "device": joint.engine["device"], "engine": joint.engine,
+            "start": {"chosen": registration.chosen_start, "objective": registration.starts},
+            "checks": registration.checks,
+            "quality": {k: joint.views[k].quality.flag for k in VIEW_KEYS}}

@@ -1,4 +1,4 @@
-"""DSA preprocessing (CONVENTIONS section 5), one function per step.
+"""DSA preprocessing (docs/conventions.md section 5), one function per step.
 
 ``preprocess_dsa`` chains them: attenuation-like frames (absorbers bright, see
 :meth:`DSARun.attenuation`) -> MAP (max over frames) -> cranium mask -> intensity
@@ -87,7 +87,7 @@ def clip_intensities(
 ) -> np.ndarray:
     """Clip to the 25th..75th percentile over the non-empty columns, then subtract the minimum.
 
-    Interpretation of CONVENTIONS 5: a column is *non-empty* when it holds at least one
+    Interpretation of docs/conventions.md 5: a column is *non-empty* when it holds at least one
     pixel of ``support`` (the cranium mask; default: pixels that are not 0). The
     percentiles are taken over all pixels of those columns (so image columns entirely
     outside the head, e.g. collimated borders, do not bias them); the whole image is
@@ -142,7 +142,7 @@ def resample_to_detector(image: np.ndarray, source: Detector, target: Detector) 
     image is sampled there bilinearly; outside the image the value is 0 (padding). When
     a target pixel covers several source pixels the image is Gaussian-smoothed first
     (sigma = 0.5 x the ratio) against aliasing. This is the "centre crop/pad with the focal
-    ratio, then resize" of CONVENTIONS 5, done exactly.
+    ratio, then resize" of docs/conventions.md 5, done exactly.
     """
     image = np.asarray(image, dtype=np.float32)
     if image.shape != source.shape:
@@ -165,7 +165,7 @@ def resample_to_model_sdd(image: np.ndarray, detector: Detector, model: Detector
 def intensity_unit(run: DSARun) -> float:
     """Stored-value step that corresponds to one level of an 8-bit image.
 
-    The range sigma (11) of CONVENTIONS 5 is in 8-bit units, the published DSA being
+    The range sigma (11) of docs/conventions.md 5 is in 8-bit units, the published DSA being
     8-bit: for a run with ``bits_stored`` b the unit is ``(2**b - 1) / 255``; without
     that information (NIfTI input) the run's value span / 255.
     """
@@ -185,7 +185,7 @@ def bilateral(
     units, as a bilateral grid (Paris and Durand 2006): the image is splatted (trilinearly) onto
     a grid of one cell per sigma in space and range, the grid is blurred with a unit Gaussian,
     and sliced back at every pixel. Within a few per cent of the brute-force filter, at a
-    thousandth of its cost for the 11-px sigma of CONVENTIONS 5."""
+    thousandth of its cost for the 11-px sigma of docs/conventions.md 5."""
     x = np.asarray(image, dtype=np.float64)
     if x.ndim != 2:
         raise InputError(f"bilateral needs a 2D image, got shape {x.shape}")
@@ -229,7 +229,7 @@ class PreparedDSA:
     ``model_image`` / ``model_mask`` on ``model_detector`` (256 x 256, 1.2 mm, SDD 1020):
     the Init/Refine target. ``tto_image`` / ``tto_mask`` on ``tto_detector`` (the
     acquisition SDD, downsampled): the test-time-optimisation target; ``tto_vessels`` the
-    MAP's opacified vessels on the same detector (:func:`vessel_image`).
+    run's opacified vessels on the same detector (:func:`vessel_image`).
     """
 
     map: np.ndarray
@@ -246,10 +246,12 @@ class PreparedDSA:
 
 
 def vessel_image(image: np.ndarray, mask: np.ndarray, source: Detector, target: Detector) -> np.ndarray:
-    """The opacified vessels of a MAP ``(H, W)`` on ``target``: clipped to its
+    """The opacified vessels of a run's temporal mean ``(H, W)`` on ``target``: clipped to its
     ``VESSEL_CLIP_PERCENTILES`` over the cranium ``mask`` (below: noise; above: a few
-    saturated pixels), masked, resampled (anti-aliased), min-max. Vessels are sharp where the
-    MAP's head silhouette, made by noise, is not; this is the image the TTO aligns them on."""
+    saturated pixels), masked, resampled (anti-aliased), min-max. Subtraction noise has zero
+    mean, so the mean over frames keeps the vessels and drops the noise-made head silhouette
+    (and the bright skull base) that the MAP's maximum holds; this is what the TTO aligns
+    the CTA's vessels on (docs/objective.md)."""
     inside = np.asarray(mask) > 0
     lo, hi = np.percentile(image[inside], C.VESSEL_CLIP_PERCENTILES)
     vessels = (np.clip(image, lo, hi) - lo) * inside
@@ -272,14 +274,15 @@ def preprocess_dsa(
     tto_px: int = TTO_TARGET_PX,
     model_clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES,
 ) -> PreparedDSA:
-    """CONVENTIONS 5 on one run: MAP, cranium mask (``mask`` overrides; native size),
+    """docs/conventions.md 5 on one run: MAP, cranium mask (``mask`` overrides; native size),
     clipping, resampling, masking, bilateral (on the 8-bit scale, :func:`intensity_unit`)
     and min-max, for the model geometry and for the TTO geometry (acquisition SDD,
     ``tto_px`` pixels along the longer side). ``invert`` as in :meth:`DSARun.attenuation`.
     ``model_clip_percentiles`` changes the clip of the networks' image only (the TTO
-    target keeps CONVENTIONS 5); see ``docs/init_depth.md``.
+    target keeps docs/conventions.md 5); see ``docs/init_depth.md``.
     """
-    image = temporal_map(run.attenuation(invert))
+    frames = run.attenuation(invert)
+    image = temporal_map(frames)
     if mask is None:
         mask = dsa_cranium_mask(image)
     else:
@@ -298,6 +301,6 @@ def preprocess_dsa(
     scale = tto_px / max(h, w)
     tto = run.detector.resized(max(1, round(h * scale)), max(1, round(w * scale)))
     tto_image, tto_mask = _finish(clipped, mask, run.detector, tto, unit)
-    tto_vessels = vessel_image(image, mask, run.detector, tto)
+    tto_vessels = vessel_image(frames.mean(axis=0), mask, run.detector, tto)
     return PreparedDSA(image, mask, model_image, model_mask, model, tto_image, tto_mask, tto, tto_vessels, run.view_role,
                        run.view_label)

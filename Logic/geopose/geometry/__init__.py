@@ -11,7 +11,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
             "is_lateral_primary_angle", "view_from_primary_angle",
         ),
         "poses": (
-            "axis_angle_to_matrix", "carm_angles_from_pose", "euler_zyx_to_matrix", "invert", "isopose",
+            "axis_angle_to_matrix", "carm_angles_from_pose", "euler_zyx_to_matrix", "invert", "isopose", "matrix_to_axis_angle",
             "matrix_to_euler_zyx", "params_from_pose", "pose_from_carm_angles", "pose_from_params", "project_points",
             "rotation_angle_rad", "source_and_detector_points",
         ),

@@ -1,7 +1,7 @@
 """The C-arm's acquisition description without any array library beyond numpy:
 detector intrinsics, DICOM positioner angles, the view rule and the AP reorientation.
 
-Frames (``shared/CONVENTIONS.md`` sections 1-2): in the *camera* frame the source
+Frames (``docs/conventions.md`` sections 1-2): in the *camera* frame the source
 is at the origin and the detector plane at ``z = SDD`` (mm); pixel ``(row i, col j)``
 lies at ``x = ((W-1)/2 - j) * delx + x0``, ``y = ((H-1)/2 - i) * dely + y0`` (the
 column axis is reversed). A pose ``T`` is camera-to-world, applied after the AP

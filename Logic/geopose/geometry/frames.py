@@ -1,7 +1,7 @@
 """The centred CTA frame and the patient (RAS / LPS) frame.
 
 The centred frame has the patient-RAS axes and its origin at the RAS position of
-voxel index ``(shape - 1) / 2`` (CONVENTIONS section 1). Poses are camera-to-world
+voxel index ``(shape - 1) / 2`` (docs/conventions.md section 1). Poses are camera-to-world
 in the centred frame; Slicer wants them camera-to-RAS.
 """
 

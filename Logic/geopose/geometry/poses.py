@@ -19,6 +19,7 @@ __all__ = [
     "matrix_to_euler_zyx",
     "params_from_pose",
     "axis_angle_to_matrix",
+    "matrix_to_axis_angle",
     "pose_from_params",
     "invert",
     "rotation_angle_rad",
@@ -69,6 +70,14 @@ def axis_angle_to_matrix(w: np.ndarray) -> np.ndarray:
     K = np.stack((zero, -w[..., 2], w[..., 1], w[..., 2], zero, -w[..., 0], -w[..., 1], w[..., 0], zero), -1)
     K = K.reshape(*w.shape[:-1], 3, 3)
     return np.eye(3) + a * K + b * (K @ K)
+
+
+def matrix_to_axis_angle(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vector (rad) of a rotation ``(3, 3)``; the angle in [0, pi)."""
+    R = np.asarray(R, dtype=np.float64)
+    angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return 0.5 * v if angle < 1e-8 else v * (angle / (2.0 * np.sin(angle)))
 
 
 def pose_from_params(r: np.ndarray, t: np.ndarray, *, rotation: str = "euler_zyx") -> np.ndarray:

@@ -14,7 +14,8 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "similarity": ("ncc", "local_ncc", "mncc"),
         "losses": ("ncc_similarity", "local_ncc_similarity", "mncc_similarity", "generalized_dice_loss"),
         "measures": (
-            "MPCD", "mpcd", "mask_points", "skeletonize", "cldice", "PoseErrors", "pose_errors", "double_geodesic_mm",
+            "MPCD", "mpcd", "mask_points", "skeletonize", "cldice", "PoseErrors", "pose_errors", "pose_error_components",
+            "double_geodesic_mm",
             "view_accuracy",
         ),
     },

@@ -15,7 +15,8 @@ from numpy.typing import ArrayLike
 import SimpleITK as sitk
 
 from ..contract import MODEL_SDD_MM, VIEW_NAMES
-from ..geometry.poses import params_from_pose, rotation_angle_rad
+from ..geometry.detector import AP_REORIENT
+from ..geometry.poses import invert, matrix_to_axis_angle, params_from_pose, rotation_angle_rad
 
 __all__ = [
     "MPCD",
@@ -25,6 +26,7 @@ __all__ = [
     "cldice",
     "PoseErrors",
     "pose_errors",
+    "pose_error_components",
     "double_geodesic_mm",
     "view_accuracy",
 ]
@@ -162,6 +164,24 @@ def pose_errors(pred: ArrayLike, ref: ArrayLike, sdd_mm: float = MODEL_SDD_MM) -
         source_distance_mm=np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=-1),
         double_geodesic_mm=double_geodesic_mm(a, b, sdd_mm),
     )
+
+
+def pose_error_components(pred: ArrayLike, ref: ArrayLike) -> dict[str, float]:
+    """One view's pose error split by what the view sees, in the true camera's frame: where the
+    CTA centre (the world origin) lies in the two cameras, in the image plane and along the
+    central ray (depth, mm), and the rotation error about the central ray (in-plane) and about
+    the two image axes (out-of-plane, deg). Poses ``(4, 4)`` camera-to-world (AP reorientation
+    included, as every pose of the project)."""
+    a, b = _as_poses("pred", pred)[0], _as_poses("ref", ref)[0]
+    cam = b @ AP_REORIENT  # true camera-to-world, camera axes as columns
+    d = invert(a @ AP_REORIENT)[:3, 3] - invert(cam)[:3, 3]  # the CTA centre in each camera's own frame
+    w = matrix_to_axis_angle(cam[:3, :3].T @ a[:3, :3] @ AP_REORIENT[:3, :3])  # rotation error, camera axes
+    return {
+        "in_plane_mm": float(np.hypot(d[0], d[1])),
+        "depth_mm": float(abs(d[2])),
+        "in_plane_rotation_deg": float(np.degrees(abs(w[2]))),
+        "out_of_plane_rotation_deg": float(np.degrees(np.hypot(w[0], w[1]))),
+    }
 
 
 def view_accuracy(pred: ArrayLike, ref: ArrayLike) -> float:

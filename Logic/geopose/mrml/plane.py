@@ -3,7 +3,7 @@ as sequence nodes, and acquisition geometry kept as node attributes.
 
 A detector image of ``H x W`` pixels is a single-slice volume with array
 ``[0, row, col]``, so image index ``i`` is the column and ``j`` the row. With
-``A`` the index -> camera map (CONVENTIONS section 2)::
+``A`` the index -> camera map (docs/conventions.md section 2)::
 
     x = ((W-1)/2 - i) * delx + x0,  y = ((H-1)/2 - j) * dely + y0,  z = SDD + k * PLANE_THICKNESS_MM
 

@@ -1,4 +1,4 @@
-"""GeoPose-Init and GeoPose-Refine (CONVENTIONS section 4).
+"""GeoPose-Init and GeoPose-Refine (docs/conventions.md section 4).
 
 Both modules are rooted so that their ``state_dict`` keys equal the published
 checkpoints' keys (``net.*``); only the Refine checkpoint's ``criterion.*``

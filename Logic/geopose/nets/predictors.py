@@ -255,7 +255,7 @@ class ModelSet:
 
 def _model_input(entry: dict) -> tuple[int, tuple[float, float]]:
     """(render_px, clip percentiles) a manifest entry declares; older entries: the training config,
-    else the model detector size and CONVENTIONS 5."""
+    else the model detector size and docs/conventions.md 5."""
     inputs = entry.get("input", {}) if isinstance(entry.get("input"), dict) else {}
     config = entry.get("training", {}).get("config", {}) if isinstance(entry.get("training"), dict) else {}
     render_px = int(inputs.get("render_px", config.get("render_px", C.MODEL_DETECTOR_PX)))

@@ -61,7 +61,7 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
         views[name] = {
             "file": f"dsa_{name}.dcm",
             "pose_camera_to_world": sim.pose.tolist(),
-            "pose_frame": "centred native CTA frame (mm), CONVENTIONS sections 1-2",
+            "pose_frame": "centred native CTA frame (mm), docs/conventions.md sections 1-2",
             "table_rotation": np.round(acq.table_rotation, 9).tolist(),
             "table_rotation_doc": "3x3 from the angiography table's axes (those of the DICOM angles) to the native frame",
             "primary_deg": acq.angles.primary_deg, "secondary_deg": acq.angles.secondary_deg,

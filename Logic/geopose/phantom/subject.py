@@ -9,7 +9,7 @@ Frames (mm, RAS axes: +x patient right, +y anterior, +z superior):
   origin: ``x_canonical = x_head - CANONICAL_CENTRE_HEAD_MM``. It is also the
   centred frame of the canonical CTA.
 * *centred native*: the centred frame of the subject's CTA (RAS axes, origin at
-  the voxel-grid centre, CONVENTIONS section 1). The head sits in it rotated by
+  the voxel-grid centre, docs/conventions.md section 1). The head sits in it rotated by
   up to ``max_rotation_deg`` and shifted.
 
 ``native_to_canonical`` (4x4) maps centred-native points to canonical points:

@@ -19,10 +19,9 @@ import numpy as np
 
 from ..dsa import DSARun
 from ..geometry.detector import AP_REORIENT
-from ..geometry.poses import axis_angle_to_matrix, invert, pose_from_carm_angles
+from ..geometry.poses import axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles
 
-__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "axis_disagreement_mm",
-           "matrix_to_rotation_vector"]
+__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "axis_disagreement_mm"]
 
 
 @dataclass(frozen=True)
@@ -47,16 +46,6 @@ def patient_pose(camera_pose: np.ndarray, nominal: np.ndarray) -> np.ndarray:
 def view_poses(X: np.ndarray, nominal: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Both camera poses ``X @ A_v`` of one patient pose."""
     return {key: np.asarray(X, dtype=np.float64) @ A for key, A in nominal.items()}
-
-
-def matrix_to_rotation_vector(R: np.ndarray) -> np.ndarray:
-    """Axis-angle vector (rad) of a rotation ``(3, 3)`` (angle below pi)."""
-    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.arccos(cos))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-8:
-        return 0.5 * v
-    return v * (angle / (2.0 * np.sin(angle)))
 
 
 def _camera_axes(X: np.ndarray, nominal: np.ndarray) -> np.ndarray:
@@ -88,7 +77,7 @@ def fuse_patient_poses(
         info_t += w_t
         info_r += w_r
         sum_t += w_t @ X[:3, 3]
-        sum_r += w_r @ matrix_to_rotation_vector(X[:3, :3] @ ref[:3, :3].T)
+        sum_r += w_r @ matrix_to_axis_angle(X[:3, :3] @ ref[:3, :3].T)
     out = np.eye(4)
     out[:3, :3] = axis_angle_to_matrix(np.linalg.solve(info_r, sum_r)) @ ref[:3, :3]
     out[:3, 3] = np.linalg.solve(info_t, sum_t)

@@ -67,7 +67,7 @@ def prepare_case(
     work_spacing_mm: float | None = None,
     monitor: Monitor | None = None,
 ) -> PreparedCase:
-    """Masks and render volume of the CTA (HU), preprocessed PA / lateral runs (CONVENTIONS 5;
+    """Masks and render volume of the CTA (HU), preprocessed PA / lateral runs (docs/conventions.md 5;
     TTO targets at ``tto_px``, the networks' images clipped to ``model_clip_percentiles``).
 
     Missing masks are computed from the CTA when first rendered (``geopose.cta.masks``); the

@@ -23,7 +23,7 @@ from .report import OVERLAY_NAMES, write_overlays
 
 #: The options ``geopose register`` (and ``geopose bench``) take, by their RegistrationOptions names.
 OPTION_ARGS = ("backend", "device", "refine_steps", "iterations", "tto_px", "render_px", "model_clip_percentiles",
-               "work_spacing_mm", "biplanar")
+               "work_spacing_mm", "independent_views", "biplanar")
 
 
 def registration_option_args(p: argparse.ArgumentParser) -> None:
@@ -40,7 +40,9 @@ def registration_option_args(p: argparse.ArgumentParser) -> None:
                    help="percentiles the networks' MAP is clipped to (default: the models' manifest, else 25 75); "
                    "the TTO target keeps 25 75")
     p.add_argument("--work-spacing-mm", type=float, help="finest voxel size (mm) the renderers sample (default: the CTA's)")
-    p.add_argument("--biplanar", action="store_true", help="add the biplanar orthogonality term to the TTO")
+    p.add_argument("--independent-views", action="store_true",
+                   help="register each view on its own (the published pipeline) instead of one patient pose seen by both arms")
+    p.add_argument("--biplanar", action="store_true", help="independent views: add the orthogonality term to the TTO")
 
 
 def options_from_args(args: argparse.Namespace) -> RegistrationOptions:

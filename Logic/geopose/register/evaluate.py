@@ -12,7 +12,7 @@ import numpy as np
 from ..dsa import DSARun
 from ..geometry.detector import Detector
 from ..geometry.poses import project_points
-from ..metrics import MPCD, cldice, mpcd, pose_errors
+from ..metrics import MPCD, cldice, mpcd, pose_error_components, pose_errors
 from ..render.renderer import Renderer
 from .results import CaseRegistration
 
@@ -80,7 +80,7 @@ def evaluate_pose(
 ) -> dict:
     """Metrics of one estimated pose ``(4, 4)`` against the truth on ``detector``.
 
-    Pose errors always; mPCD when carotid points are given (:func:`carotid_mpcd`); clDice of the
+    Pose errors always (also split into in-plane, depth and out-of-plane parts); mPCD when carotid points are given (:func:`carotid_mpcd`); clDice of the
     projected vessel masks rendered on ``mask_detector`` when a renderer is given.
     """
     est, ref = np.asarray(pose, dtype=np.float64).reshape(4, 4), np.asarray(true_pose, dtype=np.float64).reshape(4, 4)
@@ -92,6 +92,7 @@ def evaluate_pose(
         "translation_error_norm_mm": float(err.translation_norm_mm[0]),
         "source_distance_mm": float(err.source_distance_mm[0]),
         "double_geodesic_mm": float(err.double_geodesic_mm[0]),
+        **pose_error_components(est, ref),
     }
     if carotid_points_mm is not None:
         d = carotid_mpcd(est, ref, detector, sod_mm, carotid_points_mm)[0]

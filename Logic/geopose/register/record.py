@@ -143,7 +143,7 @@ def build_record(
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "frames_doc": "pose_centred: camera-to-world 4x4 in the centred native CTA frame (RAS axes, origin at the "
         "voxel-grid centre, mm); pose_ras: camera-to-RAS 4x4 in the CTA's patient frame; camera: source at origin, "
-        "detector at z = SDD, AP reorientation applied (CONVENTIONS 1-2)",
+        "detector at z = SDD, AP reorientation applied (docs/conventions.md 1-2)",
         "inputs": inputs or {},
         "environment": library_versions(),
         "options": case.options.as_dict(),
@@ -155,6 +155,16 @@ def build_record(
             "spacing_mm": list(case.cta.spacing_mm),
             "ijk_to_ras": case.cta.ijk_to_ras.tolist(),
             "centred_to_ras": case.cta.centred_to_ras.tolist(),
+        },
+        "registration": {
+            "mode": case.registration.mode,
+            "mode_doc": "biplane-rigid: one patient pose X for both views, camera poses X @ A_v with A_v from each run's "
+            "DICOM angles (nominal_pose_centred); independent views: each view on its own (the published pipeline)",
+            "tto_start": case.registration.chosen_start,
+            "start_objective": case.registration.starts,
+            "patient_pose_centred": None if case.registration.patient_pose is None else _m(case.registration.patient_pose),
+            "nominal_pose_centred": {k: _m(A) for k, A in case.registration.rig.items()},
+            "checks": case.registration.checks,
         },
         "calibration": {
             "calibration_pose": _m(cal.calibration_pose),

@@ -1,4 +1,4 @@
-"""HU -> DRR density (CONVENTIONS section 3) and label-split channels, numpy or torch."""
+"""HU -> DRR density (docs/conventions.md section 3) and label-split channels, numpy or torch."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ SCAN_SLICES = 32
 
 @dataclass(frozen=True)
 class DensityScale:
-    """CONVENTIONS 3 for one volume: HU <= HU_AIR_MAX become ``floor_hu`` (its smallest soft-tissue
+    """docs/conventions.md 3 for one volume: HU <= HU_AIR_MAX become ``floor_hu`` (its smallest soft-tissue
     value), HU > HU_BONE_MIN are multiplied by ``bone_factor``, then ``(hu' - lo_hu) / span_hu``."""
 
     floor_hu: float

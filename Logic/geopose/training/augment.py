@@ -3,7 +3,7 @@
 All functions take ``(B, 1, H, W)`` float images in [0, 1] on any device and a
 ``torch.Generator`` on the same device; each sample draws its own parameters,
 so a batch is reproducible from the generator's seed. The output is min-max
-normalised to [0, 1] like every network input (CONVENTIONS 4).
+normalised to [0, 1] like every network input (docs/conventions.md 4).
 """
 
 from __future__ import annotations
@@ -119,10 +119,53 @@ def map_like(x: Tensor, cranium: Tensor, gen: torch.Generator) -> Tensor:
     return (x + gain * rim + texture).clamp(0, 1)
 
 
-def augment(x: Tensor, gen: torch.Generator, cranium: Tensor | None = None, *, map_like_p: float = R.MAP_LIKE_P) -> Tensor:
+def _percentile_clip(x: Tensor, mask: Tensor, percentiles: tuple[float, float]) -> Tensor:
+    """Per image, clip to ``percentiles`` of the pixels in the columns ``mask`` touches, subtract the
+    low end and mask: ``dsa.preprocess.clip_intensities`` + masking, batched."""
+    n = x.shape[0]
+    columns = mask.amax(dim=-2, keepdim=True).expand_as(mask) > 0
+    q = torch.tensor(percentiles, device=x.device, dtype=x.dtype) / 100.0
+    out = torch.empty_like(x)
+    for i in range(n):
+        support = x[i][columns[i]] if bool(columns[i].any()) else x[i].flatten()
+        lo, hi = torch.quantile(support, q)
+        out[i] = (x[i].clamp(lo, hi) - lo) * mask[i]
+    return out
+
+
+def dsa_map(x: Tensor, vessels: Tensor, gen: torch.Generator, clip: tuple[float, float]) -> Tensor:
+    """A DRR ``(B, 1, H, W)`` (min-max total line integral) made into what a DSA MAP looks like
+    after the inference chain: the maximum over ``k`` frames (3-26) of subtraction noise whose
+    sd grows like ``exp(kappa * line integral)``, mottled (drawn at half resolution), plus the
+    vessels (``vessels``: the vessel channel, any scale) at a random gain, saturated like a
+    stored 8-10 bit run; then the MAP's preprocessing: light smoothing, the head mask, ``clip``
+    percentiles over its columns and masking."""
+    n, _, H, W = x.shape
+    dev = x.device
+    frames = torch.randint(3, 27, (n, 1, 1, 1), generator=gen, device=dev).to(x.dtype)
+    u = torch.rand(n, 1, (H + 1) // 2, (W + 1) // 2, generator=gen, device=dev).clamp(1e-6, 1 - 1e-6)
+    noise_max = torch.special.ndtri(u ** (1.0 / frames))  # the maximum of `frames` standard normals
+    noise_max = F.interpolate(noise_max, size=(H, W), mode="bilinear", align_corners=False)
+    kappa = _uniform(n, *R.DSA_NOISE_KAPPA, gen, dev).view(n, 1, 1, 1)
+    v = vessels / vessels.flatten(1).amax(1).clamp_min(1e-6).view(n, 1, 1, 1)
+    gain = _uniform(n, *R.DSA_VESSEL_GAIN, gen, dev).view(n, 1, 1, 1)
+    image = torch.exp(kappa * x) * (1.0 + R.DSA_NOISE_SPREAD * noise_max) + gain * v
+    levels = _uniform(n, *R.DSA_SATURATION_QUANTILE, gen, dev)
+    top = torch.stack([torch.quantile(image[i].flatten(), levels[i]) for i in range(n)])
+    image = torch.minimum(image, top.view(n, 1, 1, 1))
+    mask = (x > _uniform(n, *R.DSA_MASK_LEVEL, gen, dev).view(n, 1, 1, 1)).to(x.dtype)
+    return normalize_minmax(_percentile_clip(box_blur(image, 3), mask, clip))
+
+
+def augment(
+    x: Tensor, gen: torch.Generator, cranium: Tensor | None = None, *, map_like_p: float = R.MAP_LIKE_P,
+    vessels: Tensor | None = None, dsa_p: float = 0.0, clip: tuple[float, float] = (0.0, 100.0),
+) -> Tensor:
     """The full training augmentation of a ``(B, 1, H, W)`` batch -> min-max [0, 1], same shape.
 
-    ``cranium`` (the cranium channel) enables the MAP-likeness step. Does not alter ``x``.
+    ``cranium`` (the cranium channel) enables the MAP-likeness step; ``vessels`` (the vessel
+    channel) and ``dsa_p`` > 0 send that share of the images through :func:`dsa_map` with the
+    model's input ``clip`` (what the network will see at inference). Does not alter ``x``.
     """
     if x.ndim != 4 or x.shape[1] != 1:
         raise ValueError(f"augment expects a (B, 1, H, W) batch, got shape {tuple(x.shape)}")
@@ -131,6 +174,8 @@ def augment(x: Tensor, gen: torch.Generator, cranium: Tensor | None = None, *, m
     p = R.AUG_P
     if cranium is not None:
         x = torch.where(_coin(n, map_like_p, gen, dev), map_like(x, cranium, gen), x)
+    if vessels is not None and dsa_p > 0:
+        x = torch.where(_coin(n, dsa_p, gen, dev), dsa_map(x, vessels, gen, clip), x)
     # Plasma brightness and contrast (p = 1).
     bright = plasma(n, x.shape[-2:], _uniform(n, *R.PLASMA_ROUGHNESS, gen, dev), gen)
     contrast = plasma(n, x.shape[-2:], _uniform(n, *R.PLASMA_ROUGHNESS, gen, dev), gen)

@@ -70,6 +70,8 @@ def _train(args: argparse.Namespace) -> int:
         weights=LossWeights(render=args.render_loss, param=args.param_weight),
         init_model=str(args.init_model) if getattr(args, "init_model", None) else None,
         checkpoint_every=args.checkpoint_every,
+        input_clip=tuple(args.input_clip),
+        dsa_look_p=args.dsa_look_p,
         calibration_samples=getattr(args, "calibration_samples", 64),
     )
     max_seconds = args.max_minutes * 60 if args.max_minutes else None
@@ -132,6 +134,10 @@ def _training_options(p: argparse.ArgumentParser, kind: str) -> None:
     p.add_argument("--render-loss", action="store_true", help="Init: add -mNCC and vessel Dice at the predicted pose")
     p.add_argument("--param-weight", type=float, default=1.0, help="weight of the supervised raw-output term")
     p.add_argument("--checkpoint-every", type=int, default=100)
+    p.add_argument("--input-clip", type=float, nargs=2, metavar=("LO", "HI"), default=R.INPUT_CLIP_PERCENTILES,
+                   help="percentiles the MAP input is clipped to at inference (recorded in the model and manifest)")
+    p.add_argument("--dsa-look-p", type=float, default=R.DSA_LOOK_P,
+                   help="share of training images made to look like a preprocessed DSA MAP (augment.dsa_map)")
     if kind == "refine":
         p.add_argument("--init-model", required=True, type=Path, help="trained Init model (encoder init, calibration)")
         p.add_argument("--calibration-samples", type=int, default=64, help="renders used to measure Init's residuals (0: recipe sd)")

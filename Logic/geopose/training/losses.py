@@ -1,4 +1,4 @@
-"""Training losses of Init and Refine (CONVENTIONS section 6, plus a documented supervised term).
+"""Training losses of Init and Refine (docs/conventions.md section 6, plus a documented supervised term).
 
 Poses are camera-to-world ``(B, 4, 4)`` (mm, rad). Each loss returns the scalar
 total and a dict of detached per-term means for logging.

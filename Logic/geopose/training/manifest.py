@@ -12,7 +12,7 @@ import json
 import os
 from pathlib import Path
 
-from ..contract import MODEL_DETECTOR_PX, MODEL_PIXEL_SPACING_MM, MODEL_SDD_MM
+from ..contract import MAP_CLIP_PERCENTILES, MODEL_DETECTOR_PX, MODEL_PIXEL_SPACING_MM, MODEL_SDD_MM
 from ..nets import read_model_header
 from ..checksums import file_sha256
 from ..nets.manifest import MANIFEST_NAME, MANIFEST_SCHEMA, verify_manifest
@@ -30,6 +30,7 @@ def model_entry(path: str | os.PathLike, **extra) -> dict:
     """Manifest entry of one model file: name, checksum, size, architecture, input geometry + ``extra``."""
     path = Path(path)
     header = read_model_header(path)
+    config = header.get("metadata", {}).get("training", {}).get("config", {})
     return {
         **file_entry(path),
         "architecture": header["architecture"],
@@ -40,6 +41,8 @@ def model_entry(path: str | os.PathLike, **extra) -> dict:
             "sdd_mm": MODEL_SDD_MM,
             "channels": 1,
             "normalisation": "per-image min-max to [0, 1]",
+            "render_px": int(config.get("render_px", MODEL_DETECTOR_PX)),
+            "clip_percentiles": list(config.get("input_clip", MAP_CLIP_PERCENTILES)),
         },
         **extra,
     }

@@ -1,4 +1,4 @@
-"""The paper's training recipe (CONVENTIONS section 6), named once.
+"""The paper's training recipe (docs/conventions.md section 6), named once.
 
 Units: rad for rotations, mm for translations. These are training choices, not
 part of the geometry/model contract (``geopose.contract``).
@@ -55,3 +55,16 @@ COLLIMATION_MAX_PX: Final = 10
 MAP_LIKE_P: Final = 0.5
 SKULL_RIM_GAIN: Final = (0.3, 1.0)
 SUBTRACTION_NOISE_SD: Final = (0.02, 0.1)
+#: The DSA MAP look (``augment.dsa_map``; ours): noise sd ~ exp(kappa * min-max line integral), the
+#: relative spread of its frame maximum, the vessels' gain against the noise level, the head
+#: mask's line-integral level, the quantile where the stored range saturates, and the share of
+#: training images that get it.
+DSA_NOISE_KAPPA: Final = (1.5, 2.5)
+DSA_NOISE_SPREAD: Final = 0.35
+DSA_VESSEL_GAIN: Final = (0.5, 3.0)
+DSA_MASK_LEVEL: Final = (0.05, 0.2)
+DSA_SATURATION_QUANTILE: Final = (0.8, 0.995)
+DSA_LOOK_P: Final = 0.5
+#: Input clip of the networks trained here (recorded in the model file and the manifest):
+#: mild, so the MAP's inner structure survives (docs/init_depth.md).
+INPUT_CLIP_PERCENTILES: Final = (2.0, 98.0)

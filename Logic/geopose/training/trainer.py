@@ -27,7 +27,7 @@ from ..nets import BackboneConfig, InitNet, NetConfig, RefineNet, build_model, l
 from . import recipe as R
 from .augment import augment
 from .data import BankSource, OnTheFlySource, Renderer
-from .losses import CRANIUM, TOTAL, LossWeights, init_loss, refine_loss
+from .losses import CRANIUM, TOTAL, VESSELS, LossWeights, init_loss, refine_loss
 from .population import TrainingSubject
 from .poses import PerturbationScale
 
@@ -66,6 +66,10 @@ class TrainConfig:
     calibration_samples: int = 64
     checkpoint_every: int = 100
     log_every: int = 10
+    #: Percentiles the network's MAP input is clipped to at inference (recorded in the model file
+    #: and the manifest); ``dsa_look_p`` of the training images get that chain (``augment.dsa_map``).
+    input_clip: tuple[float, float] = R.INPUT_CLIP_PERCENTILES
+    dsa_look_p: float = R.DSA_LOOK_P
 
     def __post_init__(self) -> None:
         if self.kind not in ("init", "refine"):
@@ -91,6 +95,8 @@ class TrainConfig:
     def from_dict(cls, data: dict) -> "TrainConfig":
         values = dict(data)
         values["weights"] = LossWeights(**values.get("weights", {}))
+        if "input_clip" in values:
+            values["input_clip"] = tuple(float(v) for v in values["input_clip"])
         return cls(**values)
 
 
@@ -286,7 +292,9 @@ def train(
             loss_sum = 0.0
             for micro in range(config.accumulation_steps):
                 batch = source.batch(config.batch_size, data_gen)
-                image = augment(batch.target[:, TOTAL : TOTAL + 1], aug_gen, batch.target[:, CRANIUM : CRANIUM + 1])
+                image = augment(batch.target[:, TOTAL : TOTAL + 1], aug_gen, batch.target[:, CRANIUM : CRANIUM + 1],
+                                vessels=batch.target[:, VESSELS : VESSELS + 1], dsa_p=config.dsa_look_p,
+                                clip=tuple(config.input_clip))
                 sync = nullcontext() if (world == 1 or micro == config.accumulation_steps - 1) else wrapped.no_sync()
                 with sync:
                     with autocast():
