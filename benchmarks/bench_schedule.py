@@ -30,11 +30,11 @@ from geopose.register.pipeline import torch_renderer_for, tto_views  # noqa: E40
 from geopose.register.tto import TTOSchedule, test_time_optimise  # noqa: E402
 
 SCHEDULES = {
-    "default: 40 % at half size, peak 0.02 rad / 4 mm": TTOSchedule(),
+    "default: 60 % at half size, peak 0.02 rad / 4 mm": TTOSchedule(),
+    "40 % at half size": TTOSchedule(coarse_fraction=0.4),
+    "all at full size": TTOSchedule(coarse_fraction=0.0),
     "peak 0.01 rad / 2 mm": TTOSchedule(rotation_lr_rad=0.01, translation_lr_mm=2.0),
     "peak 0.04 rad / 8 mm": TTOSchedule(rotation_lr_rad=0.04, translation_lr_mm=8.0),
-    "60 % at half size": TTOSchedule(coarse_fraction=0.6),
-    "all at full size": TTOSchedule(coarse_fraction=0.0),
 }
 
 

@@ -71,7 +71,7 @@ class TTOSchedule:
     per-view schedule instead (max 1e-2 on Euler angles and translation / 200)."""
 
     iterations: int = C.TTO_ITERATIONS
-    coarse_fraction: float = 0.4
+    coarse_fraction: float = 0.6
     rotation_lr_rad: float = 0.02
     translation_lr_mm: float = 4.0
     paper: bool = False
