@@ -271,6 +271,27 @@ def _checked_shape(array: np.ndarray, rows: int, cols: int, where: str) -> np.nd
     return array
 
 
+def _decode_checked(
+    kind: str, module: str, frame: bytes, header: tuple[int, int, int, int], rows: int, cols: int, allocated: int,
+    where: str,
+) -> np.ndarray:
+    """Decode one compressed frame with a pylibjpeg plugin after checking its own header (rows, columns,
+    components, precision) against the DICOM header; decoder failures become InputError."""
+    h, w, components, precision = header
+    if (h, w) != (rows, cols) or components != 1 or precision > allocated:
+        raise InputError(f"{where}: the {kind} header says {h} x {w} x {components} component(s) at {precision} bits but "
+                         f"the DICOM header {rows} x {cols}, 1 component, {allocated} bits allocated: the stream or the "
+                         f"header is damaged; {_REMEDY_COPY}")
+    decoder = _plugin(module, where)
+    try:
+        array = decoder.decode(frame)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # the decoders raise RuntimeError; bindings can raise BaseException subclasses
+        raise _decoder_failure(where, exc) from None
+    return _checked_shape(np.asarray(array), rows, cols, where)
+
+
 # ------------------------------------------------------------------------ RLE
 
 
@@ -349,18 +370,8 @@ def _jpeg_frame_header(frame: bytes, where: str) -> tuple[int, int, int, int]:
 
 def _jpeg(frame: bytes, rows: int, cols: int, allocated: int, where: str) -> tuple[np.ndarray, str]:
     precision, h, w, components = _jpeg_frame_header(frame, where)
-    if (h, w) != (rows, cols) or components != 1 or precision > allocated:
-        raise InputError(f"{where}: the JPEG header says {h} x {w} x {components} component(s) at {precision} bits but the "
-                         f"DICOM header {rows} x {cols}, 1 component, {allocated} bits allocated: the stream or the header "
-                         f"is damaged; {_REMEDY_COPY}")
-    libjpeg = _plugin("libjpeg", where)
-    try:
-        array = libjpeg.decode(frame)
-    except (KeyboardInterrupt, SystemExit):
-        raise
-    except BaseException as exc:  # the decoders raise RuntimeError; bindings can raise BaseException subclasses
-        raise _decoder_failure(where, exc) from None
-    return _checked_shape(np.asarray(array), rows, cols, where), "JPEG: headers and complete decoding checked"
+    array = _decode_checked("JPEG", "libjpeg", frame, (h, w, components, precision), rows, cols, allocated, where)
+    return array, "JPEG: headers and complete decoding checked"
 
 
 # ------------------------------------------------------------------- JPEG 2000
@@ -421,18 +432,8 @@ def _j2k(
         raise InputError(f"{where}: the JPEG 2000 image header (SIZ) is missing or truncated; {_REMEDY_COPY}")
     _, xsiz, ysiz, xo, yo, _, _, _, _, csiz = struct.unpack(">HIIIIIIIIH", siz[:36])
     precision = (siz[36] & 0x7F) + 1
-    if (ysiz - yo, xsiz - xo) != (rows, cols) or csiz != 1 or precision > allocated:
-        raise InputError(f"{where}: the JPEG 2000 header says {ysiz - yo} x {xsiz - xo} x {csiz} component(s) at {precision} "
-                         f"bits but the DICOM header {rows} x {cols}, 1 component, {allocated} bits allocated: the stream or "
-                         f"the header is damaged; {_REMEDY_COPY}")
-    openjpeg = _plugin("openjpeg", where)
-    try:
-        array = openjpeg.decode(frame)
-    except (KeyboardInterrupt, SystemExit):
-        raise
-    except BaseException as exc:
-        raise _decoder_failure(where, exc) from None
-    array = _checked_shape(np.asarray(array), rows, cols, where)
+    array = _decode_checked("JPEG 2000", "openjpeg", frame, (ysiz - yo, xsiz - xo, csiz, precision), rows, cols,
+                            allocated, where)
     segments = _j2k_segments(cs)
     verifiable = (
         syntax == U.JPEG2000Lossless
@@ -442,7 +443,7 @@ def _j2k(
     if not verifiable:
         return array, "JPEG 2000: headers and complete decoding checked (stream not re-encodable here)"
     try:
-        again = openjpeg.encode(np.ascontiguousarray(array), bits_stored=precision)
+        again = _plugin("openjpeg", where).encode(np.ascontiguousarray(array), bits_stored=precision)
     except Exception as exc:
         raise _decoder_failure(where, exc) from None
     if _strip_comments(bytes(again)) != _strip_comments(cs).rstrip(b"\x00"):

@@ -313,27 +313,56 @@ def _mutate_bytes(data: bytes, rng: np.random.Generator, mutation: str, header_e
 # ---------------------------------------------------------------- verification
 
 
-def _classify_dsa(read: Callable[[], DSARun], original: dict, oracle: Callable[[], dict]) -> tuple[str, str]:
+def _classify(
+    read: Callable[[], Any], summarise: Callable[[Any], dict], same: Callable[[dict, dict], bool], original: dict,
+    oracle: Callable[[], dict], wrong: Callable[[dict, dict], str],
+    resampled: Callable[[Any, dict], bool] = lambda result, expected: False,
+) -> tuple[str, str]:
+    """Outcome of one damaged file: a clean error, accepted identical to the undamaged original, accepted and
+    faithful to what an independent reader makes of the damaged file, or accepted and WRONG."""
     try:
-        run = read()
+        result = read()
     except InputError as exc:
         return "clean error", str(exc)[:300]
     except MemoryError:
         return "out of memory", "MemoryError"
     except Exception:
         return "other exception", traceback.format_exc()[-1500:]
-    got = _dsa_summary(run)
-    if _same_dsa(got, original):
+    got = summarise(result)
+    if same(got, original):
         return "accepted, identical", ""
     try:
         with unlimited_memory():
             expected = oracle()
     except Exception as exc:
         return "accepted, WRONG", f"accepted, but the independent reader fails: {type(exc).__name__}: {exc}"[:500]
-    if _same_dsa(got, expected):
+    if resampled(result, expected):
+        return "accepted, faithful", "slice positions changed: resampled"
+    if same(got, expected):
         return "accepted, faithful", ""
-    return "accepted, WRONG", f"geometry {got['geometry']} vs independent {expected['geometry']}; frames equal: " \
-        f"{got['frames'].shape == expected['frames'].shape and np.array_equal(got['frames'], expected['frames'])}"
+    return "accepted, WRONG", wrong(got, expected)
+
+
+def _classify_dsa(read: Callable[[], DSARun], original: dict, oracle: Callable[[], dict]) -> tuple[str, str]:
+    def wrong(got: dict, expected: dict) -> str:
+        frames_equal = got["frames"].shape == expected["frames"].shape and np.array_equal(got["frames"], expected["frames"])
+        return f"geometry {got['geometry']} vs independent {expected['geometry']}; frames equal: {frames_equal}"
+
+    return _classify(read, _dsa_summary, _same_dsa, original, oracle, wrong)
+
+
+def _classify_volume(read: Callable[[], Volume], original: dict, oracle: Callable[[], dict]) -> tuple[str, str]:
+    def same(got: dict, expected: dict) -> bool:
+        return "array" in expected and _same_volume(got, expected)
+
+    def wrong(got: dict, expected: dict) -> str:
+        return f"shape {got['array'].shape} vs {original['array'].shape}, affine equal to the original: " \
+            f"{np.allclose(got['affine'], original['affine'], atol=1e-6)}"
+
+    def resampled(volume: Volume, expected: dict) -> bool:
+        return bool(expected.get("resampled_ok") and volume.metadata.get("slice_geometry", {}).get("resampled"))
+
+    return _classify(read, _volume_summary, same, original, oracle, wrong, resampled)
 
 
 def _pydicom_dsa(path: Path) -> dict:
@@ -366,29 +395,6 @@ def _sidecar_oracle(image: Path, original: dict) -> dict:
         str(keys.get("photometric_interpretation", "MONOCHROME2")))}
 
 
-def _classify_volume(read: Callable[[], Volume], original: dict, oracle: Callable[[], dict]) -> tuple[str, str]:
-    try:
-        volume = read()
-    except InputError as exc:
-        return "clean error", str(exc)[:300]
-    except MemoryError:
-        return "out of memory", "MemoryError"
-    except Exception:
-        return "other exception", traceback.format_exc()[-1500:]
-    got = _volume_summary(volume)
-    if _same_volume(got, original):
-        return "accepted, identical", ""
-    try:
-        with unlimited_memory():
-            expected = oracle()
-    except Exception as exc:
-        return "accepted, WRONG", f"accepted, but the independent reader fails: {type(exc).__name__}: {exc}"[:500]
-    if expected.get("resampled_ok") and volume.metadata.get("slice_geometry", {}).get("resampled"):
-        return "accepted, faithful", "slice positions changed: resampled"
-    if "array" in expected and _same_volume(got, expected):
-        return "accepted, faithful", ""
-    return "accepted, WRONG", f"shape {got['array'].shape} vs {original['array'].shape}, affine equal to the original: " \
-        f"{np.allclose(got['affine'], original['affine'], atol=1e-6)}"
 
 
 def _sitk_volume(path: Path) -> dict:
