@@ -38,7 +38,8 @@ from geopose.register import (
 )
 from geopose.register.biplane import nominal_poses
 from geopose.register.evaluate import evaluate_pose, load_truth, truth_metrics
-from geopose.register.objective import Objective, clip_like_target
+from geopose.register.objective import Objective, clip_like_target, objective_value
+from geopose.register.pipeline import tto_views
 from geopose.register.record import SCHEMA_VERSION, build_record
 from geopose.register.report import write_overlays
 from geopose.render.renderer import NumpyRenderer, TorchRenderer
@@ -249,3 +250,64 @@ def test_cancel_hook_stops_a_stage():
     target = render_model_view(renderer, T, ORACLE_RENDER_PX)
     with pytest.raises(RegistrationCancelled, match="refine"):
         greedy_refine(renderer, target, T, C.VIEW_PA, OracleRefine([]), ORACLE_RENDER_PX, monitor=Monitor(cancel=lambda: True))
+
+
+def test_the_objective_is_the_same_in_numpy_and_in_the_tto(phantom_case):
+    """The numpy score that picks the TTO's start and the torch loss the TTO minimises are one
+    objective: every term agrees at the DICOM-angle pose and 5 deg / 10 mm away."""
+    case = phantom_case
+    cta = load_cta(case / "cta.nii.gz")
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    runs = {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
+    prep = prepare_case(cta, runs, segmentation=labels.like((labels.array >= 2).astype(np.uint8)), tto_px=96)
+    rig = nominal_poses(runs)
+    numpy_renderer, torch_renderer = NumpyRenderer(prep.volume), TorchRenderer(prep.volume)
+    for X in (np.eye(4), _perturb(np.eye(4))):
+        poses = {k: X @ rig[k] for k in rig}
+        trace = run_tto(torch_renderer, tto_views(prep.views, poses), TTOSchedule(0), rig=rig).trace[0]
+        total = 0.0
+        for key in rig:
+            value = objective_value(numpy_renderer, poses[key], prep.views[key])
+            got = trace["views"][key]
+            assert value.vessel_ncc is not None and got["vessel_ncc"] == pytest.approx(value.vessel_ncc, abs=2e-3)
+            assert got["mncc"] == pytest.approx(value.mncc, abs=2e-3)
+            assert got["dice_loss"] == pytest.approx(value.dice_loss, abs=2e-3)
+            total += value.loss
+        assert trace["loss"] == pytest.approx(total, abs=4e-3)
+
+
+class SideSwappedInit(OracleInit):
+    """An oracle Init whose view logits read the other lateral side than the one it is told."""
+
+    def predict(self, image, is_lateral=None, mirror=True, view=None):
+        pose, label, _ = super().predict(image, is_lateral, mirror, view)
+        read = 2 - label if bool(np.asarray(is_lateral).reshape(-1)[0]) else label
+        return pose, label, np.eye(3)[read]
+
+
+def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
+    """Init 20 deg / 60 mm off, reading the lateral on the wrong side: the registration starts from
+    the DICOM-angle pose (the best of the candidates by the objective), ends no worse than it by
+    the same objective, and the lateral view carries the side doubt."""
+    case = phantom_case
+    truth = json.loads((case / "truth.json").read_text())
+    N = np.asarray(truth["native_to_canonical"], dtype=np.float64)
+    true = {k: np.asarray(truth["views"][k]["pose_camera_to_world"]) for k in ("pa", "lat")}
+    cta = load_cta(case / "cta.nii.gz")
+    runs = {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
+    far = {k: _perturb(true[k], (12.0, -10.0, 12.0), (40.0, -30.0, 30.0)) for k in true}
+    init = SideSwappedInit([N @ isopose(C.VIEW_PA), N @ far["pa"], N @ far["lat"]])
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    result = register_case(
+        cta, runs, models=oracle_models(init, OracleRefine([])), segmentation=labels.like((labels.array >= 2).astype(np.uint8)),
+        options=RegistrationOptions(backend="torch", device="cpu", tto_px=96, iterations=6),
+    )
+    registration = result.registration
+    assert set(registration.starts) == {"DICOM angles", "Init", "Refine"}
+    assert registration.chosen_start == "DICOM angles"
+    assert registration.starts["DICOM angles"] < registration.starts["Init"]
+    final = sum(objective_value(result.renderer, result.views[k].final_pose, result.views[k].prepared).loss for k in runs)
+    assert final <= registration.starts["DICOM angles"] + 1e-3
+    lat = result.views["lat"].quality
+    assert lat.flag != "ok" and any("reads this view as" in d for d in lat.reasons), lat
+    assert not any("reads this view as" in d for d in result.views["pa"].quality.reasons)

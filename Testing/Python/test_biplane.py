@@ -1,0 +1,170 @@
+"""One patient pose seen by both arms: the algebra ``T_v = X @ A_v``, the fusion of per-view
+estimates by what each view observes, the views' disagreement along their common axis, the
+biplane greedy refinement with an oracle network, and the pose error split by view axes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from geopose import contract as C
+from geopose.geometry import invert, pose_from_params
+from geopose.geometry.detector import AP_REORIENT, CArmAngles
+from geopose.geometry.poses import pose_from_carm_angles, rotation_angle_rad
+from geopose.metrics import mncc
+from geopose.metrics.measures import pose_error_components
+from geopose.register import render_model_view
+from geopose.register.biplane import Observability, axis_disagreement_mm, fuse_patient_poses, patient_pose, view_poses
+from geopose.register.refine import greedy_refine_biplane
+from geopose.render.renderer import NumpyRenderer
+from geopose.render.volume import RenderVolume
+from geopose.volume import Volume
+
+SID_MM, SOD_MM = 1200.0, 800.0
+#: A PA + lateral rig as the DICOM angles give it (slightly oblique, like real runs).
+RIG = {
+    "pa": pose_from_carm_angles(CArmAngles(3.0, -4.0, SID_MM, SOD_MM)),
+    "lat": pose_from_carm_angles(CArmAngles(88.0, 2.0, SID_MM, SOD_MM)),
+}
+RENDER_PX = 64
+
+
+def _patient(rot_deg=(2.0, -3.0, 1.5), shift_mm=(4.0, -6.0, 3.0)) -> np.ndarray:
+    X = np.eye(4)
+    X[:3, :3] = pose_from_params(np.radians(rot_deg), np.zeros(3))[:3, :3]
+    X[:3, 3] = shift_mm
+    return X
+
+
+def _rotation(axis: np.ndarray, deg: float) -> np.ndarray:
+    """Rotation matrix of ``deg`` about the unit ``axis`` (Rodrigues)."""
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = np.radians(deg)
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def _ray(key: str, X: np.ndarray = np.eye(4)) -> np.ndarray:
+    """The view's central-ray direction in the CTA frame."""
+    return (X @ RIG[key] @ AP_REORIENT)[:3, 2]
+
+
+def test_one_patient_pose_places_both_cameras():
+    X = _patient()
+    cams = view_poses(X, RIG)
+    for key in RIG:
+        np.testing.assert_allclose(cams[key], X @ RIG[key], atol=1e-12)
+        np.testing.assert_allclose(patient_pose(cams[key], RIG[key]), X, atol=1e-9)
+    # The arms stay as the rig has them: the same relative pose whatever X is.
+    np.testing.assert_allclose(invert(cams["pa"]) @ cams["lat"], invert(RIG["pa"]) @ RIG["lat"], atol=1e-9)
+    # Identity is the DICOM-angle start.
+    np.testing.assert_allclose(view_poses(np.eye(4), RIG)["lat"], RIG["lat"])
+
+
+def test_fusion_takes_each_component_from_the_view_that_sees_it():
+    X = _patient()
+    assert fuse_patient_poses({"pa": X, "lat": X}, RIG) == pytest.approx(X, abs=1e-9)
+    # PA misjudges its depth by 40 mm (along its own central ray), the lateral view is right: the lateral
+    # view sees that direction in-plane, so the fused pose keeps only depth/(1 + depth) of the error.
+    wrong = X.copy()
+    wrong[:3, 3] += 40.0 * _ray("pa", X)
+    fused = fuse_patient_poses({"pa": wrong, "lat": X}, RIG)
+    error = fused[:3, 3] - X[:3, 3]
+    obs = Observability()
+    assert abs(np.dot(error, _ray("pa", X))) == pytest.approx(40.0 * obs.depth / (1 + obs.depth), rel=0.05)
+    assert np.linalg.norm(error) < 1.0
+    # An in-plane error seen by both views (the common superior-inferior axis) is averaged.
+    common = np.cross(_ray("pa", X), _ray("lat", X))
+    common /= np.linalg.norm(common)
+    shifted = X.copy()
+    shifted[:3, 3] += 10.0 * common
+    fused = fuse_patient_poses({"pa": shifted, "lat": X}, RIG)
+    assert np.dot(fused[:3, 3] - X[:3, 3], common) == pytest.approx(5.0, abs=0.3)
+    # A rotation about PA's central ray is PA's in-plane rotation: the lateral view sees it out of
+    # plane, so the fused rotation follows PA (weights 1 against out_of_plane).
+    spun = X.copy()
+    spun[:3, :3] = _rotation(_ray("pa", X), 6.0) @ X[:3, :3]
+    fused = fuse_patient_poses({"pa": spun, "lat": X}, RIG)
+    followed = np.degrees(rotation_angle_rad(fused[:3, :3] @ X[:3, :3].T))
+    assert followed == pytest.approx(6.0 / (1 + obs.out_of_plane), rel=0.05)
+
+
+def test_disagreement_is_measured_along_the_axis_both_views_see():
+    X = _patient()
+    common = np.cross(_ray("pa", X), _ray("lat", X))
+    common /= np.linalg.norm(common)
+    apart = X.copy()
+    apart[:3, 3] += 25.0 * common + 30.0 * _ray("pa", X)  # the depth part does not count
+    assert axis_disagreement_mm({"pa": apart, "lat": X}, RIG) == pytest.approx(25.0, abs=0.5)
+    assert axis_disagreement_mm({"pa": X, "lat": X}, RIG) == pytest.approx(0.0, abs=1e-9)
+
+
+def _blob_renderer() -> NumpyRenderer:
+    n, sp = 48, 4.0
+    x = (np.arange(n) - (n - 1) / 2) * sp
+    zz, yy, xx = np.meshgrid(x, x, x, indexing="ij")
+    blobs = sum(np.exp(-((xx - a) ** 2 + (yy - b) ** 2 + (zz - c) ** 2) / (2 * s**2))
+                for a, b, c, s in [(20, 10, 5, 8), (-30, -20, 30, 10), (0, 40, -20, 7), (35, -35, -10, 9)])
+    aff = np.diag([sp, sp, sp, 1.0])
+    aff[:3, 3] = -sp * (n - 1) / 2
+    return NumpyRenderer(RenderVolume(Volume((blobs * 1000.0 - 900.0).astype(np.float32), aff)))
+
+
+class QueuedRefine:
+    """A Refine network answering queued residuals ``D`` in call order (the caller applies ``inverse(D) @ T``)."""
+
+    def __init__(self, residuals: list[np.ndarray]):
+        self.residuals, self.calls = list(residuals), 0
+
+    def predict_residual(self, target, render, view):
+        self.calls += 1
+        return np.asarray(self.residuals.pop(0))[None]
+
+
+def test_biplane_greedy_fuses_both_views_and_stops_at_the_first_worse_proposal():
+    renderer = _blob_renderer()
+    X_true = _patient()
+    truth = view_poses(X_true, RIG)
+    targets = {k: render_model_view(renderer, truth[k], RENDER_PX) for k in RIG}
+    start = _patient((5.0, -1.0, 4.0), (-8.0, 10.0, 6.0))
+    away = _patient((8.0, 0.0, 5.0), (25.0, 0.0, 0.0))
+    # Proposal 1 (from the start, PA then lateral): each view's residual to its true camera pose;
+    # proposal 2 (from the truth): residuals towards a pose far away.
+    oracle = QueuedRefine([(start @ RIG[k]) @ invert(truth[k]) for k in RIG]
+                          + [truth[k] @ invert(away @ RIG[k]) for k in RIG])
+    traces = greedy_refine_biplane(renderer, targets, start, RIG, {"pa": C.VIEW_PA, "lat": C.VIEW_LAT_PLUS}, oracle,
+                                   RENDER_PX, max_proposals=5)
+    for key in RIG:
+        # Proposal 1 (both views answer the truth) is accepted, proposal 2 (worse) rejected and the loop stops.
+        assert [p.accepted for p in traces[key].proposals] == [True, False]
+        np.testing.assert_allclose(traces[key].pose, truth[key], atol=1e-6)
+        best = mncc(targets[key][0, 0], targets[key][0, 0])  # the target against itself
+        assert traces[key].mncc == pytest.approx(best, abs=1e-6) and traces[key].start_mncc < best - 0.05
+        # Every proposal is one patient pose: the views' proposed poses keep the rig's relative pose.
+    rel = invert(traces["pa"].proposals[1].pose) @ traces["lat"].proposals[1].pose
+    np.testing.assert_allclose(rel, invert(RIG["pa"]) @ RIG["lat"], atol=1e-6)
+    assert oracle.calls == 4
+
+
+def test_pose_error_components_split_by_the_true_camera_axes():
+    true = RIG["pa"]
+    cam = true @ AP_REORIENT
+    # Move the camera 5 mm along its central ray (depth) and 3 mm along its image x axis.
+    moved = true.copy()
+    moved[:3, 3] += 5.0 * cam[:3, 2] + 3.0 * cam[:3, 0]
+    parts = pose_error_components(moved, true)
+    assert parts["depth_mm"] == pytest.approx(5.0, abs=1e-9) and parts["in_plane_mm"] == pytest.approx(3.0, abs=1e-9)
+    assert parts["in_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-9)
+    # Spin the camera 4 deg about its central ray through the source: in-plane rotation only (and the
+    # CTA centre swings in the image plane, not in depth).
+    spun = true.copy()
+    spun[:3, :3] = _rotation(cam[:3, 2], 4.0) @ true[:3, :3]
+    parts = pose_error_components(spun, true)
+    assert parts["in_plane_rotation_deg"] == pytest.approx(4.0, abs=1e-6)
+    assert parts["out_of_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert parts["depth_mm"] == pytest.approx(0.0, abs=1e-6)
+    # Tilt it 3 deg about its image x axis through the source: out-of-plane rotation only.
+    tilted = true.copy()
+    tilted[:3, :3] = _rotation(cam[:3, 0], 3.0) @ true[:3, :3]
+    parts = pose_error_components(tilted, true)
+    assert parts["out_of_plane_rotation_deg"] == pytest.approx(3.0, abs=1e-6)
+    assert parts["in_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
