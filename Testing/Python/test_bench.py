@@ -11,6 +11,7 @@ from PIL import Image
 
 from geopose.options import RegistrationOptions
 from geopose.bench import BenchSettings, convergence_figure, markdown, row_names, seed_range, summarise, training_seeds
+from geopose.bench.run import INSTANT_ROW, LEARNED_ROW
 from geopose.cli import main
 
 
@@ -19,40 +20,52 @@ def _view(ncc, mpcd, cldice=0.5, rot=1.0, trans=2.0):
             "translation_error_norm_mm": trans, "success": mpcd < 5.0}
 
 
-def _case(name, rows, views=((1, 1), (2, 2))):
-    curves = {"native + 25 TTO": {v: {"mncc": [0.1, 0.2, 0.3], "mpcd_mm": [9.0, 6.0, 3.0]} for v in ("pa", "lat")}}
+def _case(name, rows, views=((1, 1), (2, 2)), start="Refine", quality=("ok", "ok")):
+    curves = {"DICOM angles + 25 TTO": {v: {"mncc": [0.1, 0.2, 0.3], "mpcd_mm": [9.0, 6.0, 3.0]} for v in ("pa", "lat")}}
     return {
-        "case": name, "rows": rows, "curves": curves, "runtimes_s": {"calibration": 0.5, "Init (both views)": 0.25},
+        "case": name, "rows": rows, "curves": curves,
+        "runtimes_s": {"calibration (biplane)": 0.5, "init (biplane)": 0.25, "tto (biplane)": 3.0},
         "views": {"pa": {"true_view": views[0][0], "init_view": views[0][1]}, "lat": {"true_view": views[1][0], "init_view": views[1][1]}},
+        "start": {"chosen": start}, "quality": dict(zip(("pa", "lat"), quality)),
     }
 
 
+FINAL = LEARNED_ROW.format(n=25)
+
+
 def test_summary_averages_views_within_subjects_then_over_subjects():
-    a = _case("a", {"Init + greedy Refine": {"pa": _view(0.8, 2.0), "lat": _view(0.6, 4.0)}})
-    b = _case("b", {"Init + greedy Refine": {"pa": _view(0.7, 6.0), "lat": _view(0.5, 8.0)}}, views=((1, 1), (2, 0)))
+    a = _case("a", {FINAL: {"pa": _view(0.8, 2.0), "lat": _view(0.6, 4.0)}, INSTANT_ROW: {"pa": _view(0.7, 3.0), "lat": _view(0.6, 3.0)}})
+    b = _case("b", {FINAL: {"pa": _view(0.7, 6.0), "lat": _view(0.5, 8.0)}}, views=((1, 1), (2, 0)), start="DICOM angles",
+              quality=("ok", "doubtful"))
     s = summarise([a, b])
-    row = s["rows"]["Init + greedy Refine"]
-    assert row["subjects"] == 2
+    row = s["rows"][FINAL]
+    assert row["subjects"] == 2 and s["rows"][INSTANT_ROW]["subjects"] == 1
     assert row["mpcd_mm"]["pa"]["mean"] == pytest.approx(4.0)
     assert row["mpcd_mm"]["avg"]["mean"] == pytest.approx(5.0)  # subject means 3 and 7
     assert row["mpcd_mm"]["avg"]["sd"] == pytest.approx(np.std([3.0, 7.0], ddof=1))
     assert row["success"] == pytest.approx(0.5)  # 2.0 and 4.0 below 5 mm, 6.0 and 8.0 not
     assert s["view_accuracy"] == pytest.approx(0.75)
+    assert s["starts"] == {"Refine": 1, "DICOM angles": 1}
+    assert s["quality"] == {"ok": 3, "doubtful": 1, "failed": 0}
     target = {t["target"]: t for t in s["targets"]}
-    assert target["Init + greedy Refine mean mPCD <= 3 mm"]["measured"] == pytest.approx(5.0)
-    assert not target["Init + greedy Refine mean mPCD <= 3 mm"]["met"]
+    assert target["greedy + 25 TTO: mean mPCD <= 1.5 mm"]["measured"] == pytest.approx(5.0)
+    assert not target["greedy + 25 TTO: mean mPCD <= 1.5 mm"]["met"]
+    assert target["instant (greedy, no TTO): mean mPCD <= 5 mm"]["met"]  # 3.0 on the one subject with the row
     assert not target["view accuracy 100 %"]["met"]
     assert s["runtimes_s"]["calibrated Init (calibration + Init)"]["mean"] == pytest.approx(0.75)
     text = markdown(s, "# header")
     assert "| calibrated Init (calibration + Init) | 0.75 (0.00) | 0.022 |" in text
-    assert "| Init + greedy Refine | 2 | 0.750 (0.071)" in text and "| NO |" in text
+    assert f"| {FINAL} | 2 | 0.750 (0.071)" in text and "| NO |" in text
+    assert "Refine 1, DICOM angles 1 (subjects)" in text
 
 
 def test_missing_metrics_are_left_out_not_zeroed():
-    a = _case("a", {"Init": {"pa": _view(0.8, 2.0, cldice=None), "lat": _view(0.6, 4.0, cldice=0.4)}})
+    a = _case("a", {"biplane: Init": {"pa": _view(0.8, 2.0, cldice=None), "lat": _view(0.6, 4.0, cldice=0.4)}})
     s = summarise([a])
-    assert s["rows"]["Init"]["cldice"]["pa"] == {"mean": None, "sd": None, "n": 0}
-    assert s["rows"]["Init"]["cldice"]["avg"]["mean"] == pytest.approx(0.4)
+    assert s["rows"]["biplane: Init"]["cldice"]["pa"] == {"mean": None, "sd": None, "n": 0}
+    assert s["rows"]["biplane: Init"]["cldice"]["avg"]["mean"] == pytest.approx(0.4)
+    # A target whose row was not run is not met and says so (measured None).
+    assert {t["target"]: t["measured"] for t in s["targets"]}["greedy + 25 TTO: mean mPCD <= 1.5 mm"] is None
 
 
 def test_seed_ranges_are_inclusive_and_bad_text_names_the_remedy():
@@ -63,17 +76,19 @@ def test_seed_ranges_are_inclusive_and_bad_text_names_the_remedy():
 
 
 def test_convergence_figure_is_written(tmp_path):
-    path = convergence_figure([_case("a", {}), _case("b", {})], ["native + 25 TTO"], tmp_path / "c.png")
+    path = convergence_figure([_case("a", {}), _case("b", {})], ["DICOM angles + 25 TTO"], tmp_path / "c.png")
     img = np.asarray(Image.open(path))
     assert img.shape[0] > 200 and img.shape[1] > 2 * img.shape[0]
 
 
-def test_rows_follow_the_paper_table():
+def test_rows_compare_the_biplane_method_with_the_published_pipeline():
     rows = row_names(BenchSettings(RegistrationOptions(iterations=25), long_iterations=400))
-    assert rows[:4] == ["native", "Init", "Init + Refine x1", "Init + greedy Refine"]
-    assert rows[4:8] == [r + " + 25 TTO" for r in rows[:4]]
-    assert rows[-1] == "native + 400 TTO"
-    assert "native + 400 TTO" not in row_names(BenchSettings(long_iterations=0))
+    assert rows[:2] == ["DICOM angles", "DICOM angles + 25 TTO"]
+    assert rows[2:5] == ["biplane: Init", INSTANT_ROW, FINAL]
+    assert rows[5:9] == ["independent: Init", "independent: Init + Refine x1", "independent: greedy Refine",
+                         "independent: greedy Refine + 25 TTO"]
+    assert rows[9] == "truth + 25 TTO (drift)" and rows[-1] == "DICOM angles + 400 TTO"
+    assert "DICOM angles + 400 TTO" not in row_names(BenchSettings(long_iterations=0))
 
 
 def test_training_seeds_are_read_from_the_manifest_and_refused(tmp_path, capsys):
@@ -98,9 +113,10 @@ def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     for row in case["rows"].values():
         for metrics in row.values():
             assert metrics["mpcd_mm"] >= 0 and -1 <= metrics["ncc"] <= 1
-    # the native row is the DICOM-angle pose; Init rows start TTO runs of 2 + 1 entries
-    assert len(case["curves"]["Init + greedy Refine + 2 TTO"]["pa"]["mncc"]) == 3
-    assert len(case["curves"]["native + 3 TTO"]["lat"]["mpcd_mm"]) == 4
+    # TTO rows keep their curves: 2 (or 3) steps and the start
+    assert len(case["curves"][LEARNED_ROW.format(n=2)]["pa"]["mncc"]) == 3
+    assert len(case["curves"]["DICOM angles + 3 TTO"]["lat"]["mpcd_mm"]) == 4
+    assert case["start"]["chosen"] in ("DICOM angles", "Init", "Refine")
     assert "## Targets" in (out / "bench.md").read_text()
     assert (out / "tto_convergence.png").stat().st_size > 10_000
     assert (out / "cases" / "phantom-777001.json").is_file()  # resumable
