@@ -22,7 +22,7 @@ from geopose.training.poses import init_pose_tensor, residual_tensor
 from geopose.phantom import labels as L
 from geopose.phantom import make_subject
 from geopose.training import recipe as R
-from geopose.training.augment import augment, clahe
+from geopose.training.augment import augment, clahe, dsa_map
 from geopose.training.canonical import align_to_template, nearest_rotation, resample_to_template, rigid_error
 from geopose.training.losses import double_geodesic, log_se3_geodesic
 from geopose.errors import InputError
@@ -129,6 +129,27 @@ def test_augmentation_shapes_ranges_and_reproducibility():
         augment(torch.rand(2, 3, 64, 64), torch.Generator())
 
 
+def test_dsa_look_is_masked_clipped_and_shows_the_vessels():
+    """augment.dsa_map: outside the head mask 0, the noise follows the attenuation (brighter where the
+    head is thicker), the vessels stand out, and the same seed gives the same images."""
+    yy, xx = torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij")
+    head = torch.exp(-((yy - 32) ** 2 + (xx - 32) ** 2) / (2 * 14.0**2))
+    x = head.expand(4, 1, 64, 64).clone()
+    vessels = torch.zeros_like(x)
+    vessels[..., 20:44, 30:32] = 1.0
+    a = dsa_map(x, vessels, torch.Generator().manual_seed(1), (2.0, 98.0))
+    b = dsa_map(x, vessels, torch.Generator().manual_seed(1), (2.0, 98.0))
+    assert torch.equal(a, b) and a.shape == x.shape and a.amin() >= 0 and a.amax() <= 1
+    outside = head.expand_as(x) < 0.05  # below every mask level the recipe draws
+    assert (a[outside] == 0).all()
+    centre, rim = a[..., 28:36, 20:28].mean(), a[..., 28:36, 6:12].mean()
+    assert centre > rim  # thicker head, stronger noise maximum
+    assert a[..., 24:40, 30:32].mean() > a[..., 24:40, 26:28].mean()  # the vessel column against its neighbour
+    # augment sends exactly that share through it (dsa_p = 1: every image masked to 0 outside).
+    c = augment(x, torch.Generator().manual_seed(2), vessels=vessels, dsa_p=1.0, clip=(2.0, 98.0))
+    assert c.shape == x.shape and torch.isfinite(c).all()
+
+
 def test_clahe_equalises_a_low_contrast_image():
     x = 0.4 + 0.1 * torch.rand(1, 1, 64, 64)
     y = clahe(x, torch.tensor([10.0]))
@@ -213,6 +234,19 @@ def test_refine_training_starts_from_the_init_encoder(tiny_population, tmp_path,
     assert len(_rows(tmp_path / "refine" / LOG_NAME)) == 1
     with pytest.raises(ValueError, match="init-model"):
         TrainConfig("refine", steps=1)
+
+
+def test_a_run_can_start_from_a_model_of_the_same_architecture(tiny_population, tmp_path):
+    first = train(TrainConfig("init", steps=1, **TINY), tiny_population, tmp_path / "a", progress=False)
+    # A vanishing learning rate: the one step leaves the starting weights as they were (batch-norm
+    # statistics, not weights, move with every batch).
+    tuned = train(TrainConfig("init", steps=1, lr=1e-12, start_from=str(first), **{**TINY, "seed": 9}), tiny_population,
+                  tmp_path / "b", progress=False)
+    for (name, w0), (_, w1) in zip(load_model(first).named_parameters(), load_model(tuned).named_parameters()):
+        assert torch.allclose(w0.float(), w1.float(), atol=1e-6), name
+    with pytest.raises(InputError, match="--width"):
+        train(TrainConfig("init", steps=1, start_from=str(first), **{**TINY, "base_width": 16}), tiny_population,
+              tmp_path / "c", progress=False)
 
 
 def _ddp_worker(rank: int, port: int, subjects, out: str) -> None:

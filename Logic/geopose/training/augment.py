@@ -9,6 +9,7 @@ normalised to [0, 1] like every network input (docs/conventions.md 4).
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import torch
 from torch import Tensor
@@ -22,9 +23,15 @@ def _uniform(n: int, lo: float, hi: float, gen: torch.Generator, device: torch.d
     return lo + (hi - lo) * torch.rand(n, generator=gen, device=device)
 
 
-def _coin(n: int, p: float, gen: torch.Generator, device: torch.device) -> Tensor:
-    """``(n, 1, 1, 1)`` bool: which samples get an augmentation of probability ``p``."""
-    return (torch.rand(n, generator=gen, device=device) < p).view(n, 1, 1, 1)
+def _some(x: Tensor, p: float, gen: torch.Generator, fn: Callable[[Tensor, Tensor], Tensor]) -> Tensor:
+    """``x`` with ``fn(x[chosen], chosen)`` in place of a random share ``p`` of its samples; ``fn``
+    sees (and draws parameters for) only those, so an augmentation costs what it is used for."""
+    chosen = torch.rand(x.shape[0], generator=gen, device=x.device) < p
+    if not bool(chosen.any()):
+        return x
+    out = x.clone()
+    out[chosen] = fn(x[chosen], chosen)
+    return out
 
 
 def box_blur(x: Tensor, size: int = 3) -> Tensor:
@@ -172,28 +179,30 @@ def augment(
     n, dev = x.shape[0], x.device
     x = normalize_minmax(x)
     p = R.AUG_P
+
+    def per_sample(lo_hi: tuple[float, float], k: int) -> Tensor:
+        return _uniform(k, *lo_hi, gen, dev)
+
     if cranium is not None:
-        x = torch.where(_coin(n, map_like_p, gen, dev), map_like(x, cranium, gen), x)
+        x = _some(x, map_like_p, gen, lambda xs, c: map_like(xs, cranium[c], gen))
     if vessels is not None and dsa_p > 0:
-        x = torch.where(_coin(n, dsa_p, gen, dev), dsa_map(x, vessels, gen, clip), x)
+        x = _some(x, dsa_p, gen, lambda xs, c: dsa_map(xs, vessels[c], gen, clip))
     # Plasma brightness and contrast (p = 1).
     bright = plasma(n, x.shape[-2:], _uniform(n, *R.PLASMA_ROUGHNESS, gen, dev), gen)
     contrast = plasma(n, x.shape[-2:], _uniform(n, *R.PLASMA_ROUGHNESS, gen, dev), gen)
     mean = x.mean(dim=(-2, -1), keepdim=True)
     x = (x - mean) * (1 + R.PLASMA_CONTRAST * (contrast - 0.5)) + mean + R.PLASMA_BRIGHTNESS * (bright - 0.5)
     x = normalize_minmax(x)
-    x = torch.where(_coin(n, p, gen, dev), clahe(x, _uniform(n, *R.CLAHE_CLIP, gen, dev)), x)
-    gamma = _uniform(n, *R.GAMMA_RANGE, gen, dev).view(n, 1, 1, 1)
-    x = torch.where(_coin(n, p, gen, dev), x.clamp_min(0) ** gamma, x)
-    filtered = bilateral(x, _uniform(n, *R.BILATERAL_SPATIAL_PX, gen, dev), _uniform(n, *R.BILATERAL_RANGE_SD, gen, dev))
-    x = torch.where(_coin(n, p, gen, dev), filtered, x)
-    x = torch.where(_coin(n, p, gen, dev), box_blur(x), x)
-    amount = _uniform(n, *R.SHARPNESS_RANGE, gen, dev).view(n, 1, 1, 1)
-    x = torch.where(_coin(n, p, gen, dev), (x + amount * (x - box_blur(x))).clamp(0, 1), x)
-    noise = torch.randn(x.shape, generator=gen, device=dev) * R.NOISE_SD
-    x = torch.where(_coin(n, p, gen, dev), (x + noise).clamp(0, 1), x)
-    x = torch.where(_coin(n, p, gen, dev), x * (1 - _erase_mask(x, gen)), x)
-    x = torch.where(_coin(n, p, gen, dev), x * _collimation_mask(x, gen), x)
+    x = _some(x, p, gen, lambda xs, c: clahe(xs, per_sample(R.CLAHE_CLIP, len(xs))))
+    x = _some(x, p, gen, lambda xs, c: xs.clamp_min(0) ** per_sample(R.GAMMA_RANGE, len(xs)).view(-1, 1, 1, 1))
+    x = _some(x, p, gen, lambda xs, c: bilateral(xs, per_sample(R.BILATERAL_SPATIAL_PX, len(xs)),
+                                                 per_sample(R.BILATERAL_RANGE_SD, len(xs))))
+    x = _some(x, p, gen, lambda xs, c: box_blur(xs))
+    x = _some(x, p, gen, lambda xs, c: (xs + per_sample(R.SHARPNESS_RANGE, len(xs)).view(-1, 1, 1, 1)
+                                        * (xs - box_blur(xs))).clamp(0, 1))
+    x = _some(x, p, gen, lambda xs, c: (xs + torch.randn(xs.shape, generator=gen, device=dev) * R.NOISE_SD).clamp(0, 1))
+    x = _some(x, p, gen, lambda xs, c: xs * (1 - _erase_mask(xs, gen)))
+    x = _some(x, p, gen, lambda xs, c: xs * _collimation_mask(xs, gen))
     return normalize_minmax(x)
 
 

@@ -73,6 +73,7 @@ def _train(args: argparse.Namespace) -> int:
         input_clip=tuple(args.input_clip),
         dsa_look_p=args.dsa_look_p,
         calibration_samples=getattr(args, "calibration_samples", 64),
+        start_from=str(args.start_from) if args.start_from else None,
     )
     max_seconds = args.max_minutes * 60 if args.max_minutes else None
     path = train(config, subjects, args.out, device=args.device, data_recipe=recipe, max_seconds=max_seconds)
@@ -138,6 +139,8 @@ def _training_options(p: argparse.ArgumentParser, kind: str) -> None:
                    help="percentiles the MAP input is clipped to at inference (recorded in the model and manifest)")
     p.add_argument("--dsa-look-p", type=float, default=R.DSA_LOOK_P,
                    help="share of training images made to look like a preprocessed DSA MAP (augment.dsa_map)")
+    p.add_argument("--start-from", type=Path, default=None,
+                   help=f"a {kind} model file (same --depth/--width) whose weights start the run: fine-tuning")
     if kind == "refine":
         p.add_argument("--init-model", required=True, type=Path, help="trained Init model (encoder init, calibration)")
         p.add_argument("--calibration-samples", type=int, default=64, help="renders used to measure Init's residuals (0: recipe sd)")

@@ -22,6 +22,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+from ..errors import InputError
 from ..images import normalize_minmax
 from ..nets import BackboneConfig, InitNet, NetConfig, RefineNet, build_model, load_model, save_model
 from . import recipe as R
@@ -70,6 +71,8 @@ class TrainConfig:
     #: and the manifest); ``dsa_look_p`` of the training images get that chain (``augment.dsa_map``).
     input_clip: tuple[float, float] = R.INPUT_CLIP_PERCENTILES
     dsa_look_p: float = R.DSA_LOOK_P
+    #: A model file of the same kind and architecture whose weights start the run (fine-tuning).
+    start_from: str | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in ("init", "refine"):
@@ -200,6 +203,16 @@ def _save_checkpoint(path: Path, model: nn.Module, optimiser, scheduler, step: i
     os.replace(tmp, path)
 
 
+def _start_weights(config: TrainConfig) -> nn.Module:
+    """The model ``config.start_from`` names, refused unless it is of the run's kind and architecture."""
+    source = load_model(config.start_from)
+    if source.config != config.net_config():
+        raise InputError(f"{config.start_from} is a {source.config.kind} network with {source.config.backbone}, but this "
+                         f"run trains a {config.kind} network with {config.net_config().backbone}: pass the same "
+                         "--depth and --width as that model, or start from another one")
+    return source
+
+
 def train(
     config: TrainConfig,
     subjects: list[TrainingSubject],
@@ -235,12 +248,14 @@ def train(
     aug_gen = torch.Generator(device).manual_seed(config.seed * 104729 + rank + 1)
 
     model = build_model(config.net_config()).to(device)
+    if config.start_from is not None and resume is None:
+        model.load_state_dict(_start_weights(config).state_dict())
     perturbation = PerturbationScale()
     if config.kind == "init":
         model.net.fc.domain.requires_grad_(False)  # the domain classifier is not trained here
     elif config.init_model is not None:
         init_net = load_model(config.init_model, device)
-        if resume is None:
+        if resume is None and config.start_from is None:
             init_encoder_from(model, init_net)
         if config.calibration_samples > 0:
             perturbation = (
