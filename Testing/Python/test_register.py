@@ -24,6 +24,7 @@ from geopose.nets import ModelSet
 from geopose.options import RegistrationOptions
 from geopose.phantom.cli import write_phantom
 from geopose.register import (
+    PAPER_SCHEDULE,
     Monitor,
     RegistrationCancelled,
     TTOSchedule,
@@ -38,7 +39,7 @@ from geopose.register import (
 )
 from geopose.register.biplane import nominal_poses
 from geopose.register.evaluate import evaluate_pose, load_truth, truth_metrics
-from geopose.register.objective import Objective, clip_like_target, objective_value
+from geopose.register.objective import PAPER_OBJECTIVE, Objective, clip_like_target, objective_value
 from geopose.register.pipeline import tto_views
 from geopose.register.record import SCHEMA_VERSION, build_record
 from geopose.register.report import write_overlays
@@ -311,3 +312,31 @@ def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     lat = result.views["lat"].quality
     assert lat.flag != "ok" and any("reads this view as" in d for d in lat.reasons), lat
     assert not any("reads this view as" in d for d in result.views["pa"].quality.reasons)
+
+
+#: Drift (mPCD, mm at the detector) a TTO started at the truth may reach on the phantom's simulated
+#: MAPs with the default objective: the issue's target is 0.5 mm mean over the benchmark; the bench
+#: measures it (row "truth + 25 TTO (drift)"), this bounds one case per view.
+TTO_DRIFT_BOUND_MM = 1.5
+
+
+def test_tto_started_at_the_truth_stays_near_it(phantom_case):
+    """The default objective's optimum on a simulated DSA pair lies near the truth: one patient pose,
+    25 steps from the true pose, ends within TTO_DRIFT_BOUND_MM per view; the paper's objective, per
+    view, drifts further on the same case."""
+    case = phantom_case
+    truth = load_truth(case / "cta.nii.gz")
+    cta = load_cta(case / "cta.nii.gz")
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    runs = {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
+    prep = prepare_case(cta, runs, segmentation=labels.like((labels.array >= 2).astype(np.uint8)))
+    renderer = TorchRenderer(prep.volume)
+
+    def drift(poses: dict) -> dict[str, float]:
+        return {k: evaluate_pose(poses[k], truth.poses[k], runs[k].detector, runs[k].angles.sod_mm,
+                                 truth.carotid_points_mm)["mpcd_mm"] for k in runs}
+
+    ours = drift(run_tto(renderer, tto_views(prep.views, truth.poses), rig=nominal_poses(runs)).poses)
+    paper = drift(run_tto(renderer, tto_views(prep.views, truth.poses), PAPER_SCHEDULE, objective=PAPER_OBJECTIVE).poses)
+    assert max(ours.values()) <= TTO_DRIFT_BOUND_MM, ours
+    assert sum(ours.values()) < sum(paper.values()), (ours, paper)
