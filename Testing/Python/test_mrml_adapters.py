@@ -160,7 +160,7 @@ def test_projected_segmentation_covers_projected_vessel_voxels(scene):
     cta, lab = _cta()
     pose_c = _pose(C.VIEW_PA)
     det = Detector(64, 64, (0.4, 0.4), 1020.0)
-    cta_node = mrml.volume_to_node(scene, cta, "CTA")
+    mrml.volume_to_node(scene, cta, "CTA")
     seg = mrml.projected_segmentation_node(
         scene, lab, {1: ("vessel", (1, 0, 0)), 2: ("blob", (0, 0, 1))}, pose_c, det, "GeoPose PA projected vessels"
     )
@@ -190,12 +190,12 @@ def test_projected_segmentation_covers_projected_vessel_voxels(scene):
 
 def test_result_table_and_mrb_round_trip(scene, tmp_path):
     cta, lab = _cta()
-    cta_node = mrml.volume_to_node(scene, cta, "CTA")
+    mrml.volume_to_node(scene, cta, "CTA")
     pose_ras = cta.centred_to_ras @ _pose()
     frames = np.arange(2 * DET.rows * DET.cols, dtype=np.float32).reshape(2, DET.rows, DET.cols)
     seq, _ = mrml.dsa_sequence_node(scene, frames, DET, pose_ras, "DSA PA", frame_time_s=0.5)
-    t = mrml.pose_transform_node(scene, pose_ras, "GeoPose PA pose")
-    seg = mrml.segmentation_from_labelmap(scene, lab, {1: ("vessel", (1, 0, 0))}, "Vessels")
+    mrml.pose_transform_node(scene, pose_ras, "GeoPose PA pose")
+    mrml.segmentation_from_labelmap(scene, lab, {1: ("vessel", (1, 0, 0))}, "Vessels")
     table = mrml.result_table_node(scene, [{"view": "PA", "ncc": 0.5, "flag": "ok"}, {"view": "LAT", "ncc": 0.25}], "GeoPose results")
     assert table.GetNumberOfRows() == 2 and table.GetCellText(1, 2) == ""
     assert float(table.GetCellText(1, 1)) == 0.25
