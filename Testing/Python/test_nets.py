@@ -15,6 +15,7 @@ import pytest
 import torch
 from conftest import SHARED
 
+from geopose import contract as C
 from geopose.contract import (
     INIT_TRANSLATION_SCALE_MM,
     ISO_TRANSLATION_MM,
@@ -42,7 +43,8 @@ from geopose.nets import (
 )
 from geopose.nets.decoding import decode_init_pose
 from geopose.nets.manifest import verify_models
-from geopose.nets.predictors import OnnxInit, OnnxRefine, TorchInit, TorchRefine
+from geopose.nets.predictors import OnnxInit, OnnxRefine, TorchInit, TorchRefine, _model_input
+from geopose.resources import default_models_dir
 from geopose.training.poses import init_pose_tensor, residual_tensor
 from geopose.nets.checkpoint import (
     published_manifest_path,
@@ -485,9 +487,16 @@ def test_load_models_both_runtimes_agree_and_check_every_file(tmp_path):
 
 
 def test_the_shipped_models_declare_their_input():
+    """The model set takes render size and input clip from each model's manifest entry (the
+    shipped CPU models: 96 px, 2-98 clip); an entry that declares no clip gets
+    docs/conventions.md 5's 25-75, as published checkpoints do."""
+    manifest = json.loads((default_models_dir() / "manifest.json").read_text())["models"]
+    declared = manifest["init"]["input"]
     models = load_models(runtime="onnxruntime")
-    assert models.render_px == 96 and models.clip_percentiles == (25.0, 75.0)
+    assert models.render_px == declared["render_px"] == 96
+    assert models.clip_percentiles == tuple(declared["clip_percentiles"]) == (2.0, 98.0)
     assert set(models.files) == {"init", "refine"} and all(f["path"].endswith(".onnx") for f in models.files.values())
+    assert _model_input({"input": {"render_px": 128}}) == (128, C.MAP_CLIP_PERCENTILES) == (128, (25.0, 75.0))
 
 
 def test_cli_reports_bad_checkpoint_without_traceback(tmp_path, monkeypatch, capsys):
