@@ -48,3 +48,22 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared test data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+def blob_renderer():
+    """A numpy renderer of four Gaussian blobs (a 48^3, 4 mm volume centred on the origin, HU-like
+    values): a small scene whose poses are observable from any view."""
+    import numpy as np
+
+    from geopose.render.renderer import NumpyRenderer
+    from geopose.render.volume import RenderVolume
+    from geopose.volume import Volume
+
+    n, sp = 48, 4.0
+    x = (np.arange(n) - (n - 1) / 2) * sp
+    zz, yy, xx = np.meshgrid(x, x, x, indexing="ij")
+    blobs = sum(np.exp(-((xx - a) ** 2 + (yy - b) ** 2 + (zz - c) ** 2) / (2 * s**2))
+                for a, b, c, s in [(20, 10, 5, 8), (-30, -20, 30, 10), (0, 40, -20, 7), (35, -35, -10, 9)])
+    aff = np.diag([sp, sp, sp, 1.0])
+    aff[:3, 3] = -sp * (n - 1) / 2
+    return NumpyRenderer(RenderVolume(Volume((blobs * 1000.0 - 900.0).astype(np.float32), aff)))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import blob_renderer
 
 from geopose import contract as C
 from geopose.geometry import invert, pose_from_params
@@ -16,9 +17,6 @@ from geopose.metrics.measures import pose_error_components
 from geopose.register import render_model_view
 from geopose.register.biplane import Observability, axis_disagreement_mm, fuse_patient_poses, patient_pose, view_poses
 from geopose.register.refine import greedy_refine_biplane
-from geopose.render.renderer import NumpyRenderer
-from geopose.render.volume import RenderVolume
-from geopose.volume import Volume
 
 SID_MM, SOD_MM = 1200.0, 800.0
 #: A PA + lateral rig as the DICOM angles give it (slightly oblique, like real runs).
@@ -98,17 +96,6 @@ def test_disagreement_is_measured_along_the_axis_both_views_see():
     assert axis_disagreement_mm({"pa": X, "lat": X}, RIG) == pytest.approx(0.0, abs=1e-9)
 
 
-def _blob_renderer() -> NumpyRenderer:
-    n, sp = 48, 4.0
-    x = (np.arange(n) - (n - 1) / 2) * sp
-    zz, yy, xx = np.meshgrid(x, x, x, indexing="ij")
-    blobs = sum(np.exp(-((xx - a) ** 2 + (yy - b) ** 2 + (zz - c) ** 2) / (2 * s**2))
-                for a, b, c, s in [(20, 10, 5, 8), (-30, -20, 30, 10), (0, 40, -20, 7), (35, -35, -10, 9)])
-    aff = np.diag([sp, sp, sp, 1.0])
-    aff[:3, 3] = -sp * (n - 1) / 2
-    return NumpyRenderer(RenderVolume(Volume((blobs * 1000.0 - 900.0).astype(np.float32), aff)))
-
-
 class QueuedRefine:
     """A Refine network answering queued residuals ``D`` in call order (the caller applies ``inverse(D) @ T``)."""
 
@@ -121,7 +108,7 @@ class QueuedRefine:
 
 
 def test_biplane_greedy_fuses_both_views_and_stops_at_the_first_worse_proposal():
-    renderer = _blob_renderer()
+    renderer = blob_renderer()
     X_true = _patient()
     truth = view_poses(X_true, RIG)
     targets = {k: render_model_view(renderer, truth[k], RENDER_PX) for k in RIG}

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import blob_renderer
 from PIL import Image
 
 from geopose import contract as C
@@ -44,8 +45,6 @@ from geopose.register.pipeline import tto_views
 from geopose.register.record import SCHEMA_VERSION, build_record
 from geopose.register.report import write_overlays
 from geopose.render.renderer import NumpyRenderer, TorchRenderer
-from geopose.render.volume import RenderVolume
-from geopose.volume import Volume
 
 
 #: mPCD (mm at the detector) the TTO must reach from a 5 deg / 10 mm perturbation when the
@@ -106,13 +105,18 @@ def phantom_case(tmp_path_factory) -> Path:
     return out
 
 
-def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
-    case = phantom_case
+def _read_phantom(case: Path):
+    """(native-to-canonical (4, 4), true camera-to-world poses per view, CTA, DSA runs) of a
+    phantom folder written by ``geopose phantom``."""
     truth = json.loads((case / "truth.json").read_text())
     N = np.asarray(truth["native_to_canonical"], dtype=np.float64)
     true = {k: np.asarray(truth["views"][k]["pose_camera_to_world"]) for k in ("pa", "lat")}
-    cta = load_cta(case / "cta.nii.gz")
-    runs = {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
+    return N, true, load_cta(case / "cta.nii.gz"), {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
+
+
+def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
+    case = phantom_case
+    N, true, cta, runs = _read_phantom(case)
     start = {k: _perturb(true[k]) for k in true}
     t_cal = isopose(C.VIEW_PA)
     # A perfect Init: canonical poses N @ T for the calibration DRR and for each view.
@@ -199,19 +203,8 @@ def test_tto_reaches_one_mm_on_a_consistent_target(phantom_case):
     assert sizes[: TTOSchedule().coarse_steps()] == ["half"] * TTOSchedule().coarse_steps() and sizes[-1] == "full"
 
 
-def _blob_renderer() -> NumpyRenderer:
-    n, sp = 48, 4.0
-    x = (np.arange(n) - (n - 1) / 2) * sp
-    zz, yy, xx = np.meshgrid(x, x, x, indexing="ij")
-    blobs = sum(np.exp(-((xx - a) ** 2 + (yy - b) ** 2 + (zz - c) ** 2) / (2 * s**2))
-                for a, b, c, s in [(20, 10, 5, 8), (-30, -20, 30, 10), (0, 40, -20, 7), (35, -35, -10, 9)])
-    aff = np.diag([sp, sp, sp, 1.0])
-    aff[:3, 3] = -sp * (n - 1) / 2
-    return NumpyRenderer(RenderVolume(Volume((blobs * 1000.0 - 900.0).astype(np.float32), aff)))
-
-
 def test_calibration_with_perfect_network_recovers_native_pose():
-    renderer = _blob_renderer()
+    renderer = blob_renderer()
     g = np.random.default_rng(5)
     A = pose_from_params(g.normal(0, 0.2, 3), g.normal(0, 20, 3))
     t_cal = isopose(C.VIEW_PA)
@@ -229,7 +222,7 @@ def test_calibration_with_perfect_network_recovers_native_pose():
 
 
 def test_greedy_accepts_improvement_and_stops_at_first_rejection():
-    renderer = _blob_renderer()
+    renderer = blob_renderer()
     T_true = isopose(C.VIEW_PA)
     start = _perturb(T_true, (4.0, 0.0, 3.0), (8.0, 0.0, -6.0))
     target = render_model_view(renderer, T_true, ORACLE_RENDER_PX)
@@ -246,7 +239,7 @@ def test_greedy_accepts_improvement_and_stops_at_first_rejection():
 
 
 def test_cancel_hook_stops_a_stage():
-    renderer = _blob_renderer()
+    renderer = blob_renderer()
     T = isopose(C.VIEW_PA)
     target = render_model_view(renderer, T, ORACLE_RENDER_PX)
     with pytest.raises(RegistrationCancelled, match="refine"):
@@ -291,11 +284,7 @@ def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     the DICOM-angle pose (the best of the candidates by the objective), ends no worse than it by
     the same objective, and the lateral view carries the side doubt."""
     case = phantom_case
-    truth = json.loads((case / "truth.json").read_text())
-    N = np.asarray(truth["native_to_canonical"], dtype=np.float64)
-    true = {k: np.asarray(truth["views"][k]["pose_camera_to_world"]) for k in ("pa", "lat")}
-    cta = load_cta(case / "cta.nii.gz")
-    runs = {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
+    N, true, cta, runs = _read_phantom(case)
     far = {k: _perturb(true[k], (12.0, -10.0, 12.0), (40.0, -30.0, 30.0)) for k in true}
     init = SideSwappedInit([N @ isopose(C.VIEW_PA), N @ far["pa"], N @ far["lat"]])
     labels = load_cta(case / "labels.nii.gz", check_hu=False)
