@@ -20,7 +20,7 @@ pytest.importorskip("diffdrr.drr", reason="DiffDRR is not installed here (see be
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import renderer_common as rc  # noqa: E402
 
-from geopose.geometry import RigidTransform, project_points  # noqa: E402
+from geopose.geometry import RigidTransform, project_points_tensor  # noqa: E402
 from geopose.render import DRR, hu_to_density  # noqa: E402
 
 NCC_MIN = 0.995
@@ -76,7 +76,7 @@ def test_projected_points_match(scene):
     volume, detector, _, poses = scene
     pts = (torch.rand(20, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.5) * 160
     pts = pts.expand(len(poses), -1, -1)
-    ours, _ = project_points(poses, detector, pts)
+    ours, _ = project_points_tensor(poses, detector, pts)
     theirs = rc.DiffDRRAdapter(volume, detector).project(poses, pts).double()
     err = (ours - theirs).norm(dim=-1)
     assert float(err.max()) < POINT_TOL_PX
@@ -92,7 +92,7 @@ def test_bead_centroid_matches(scene):
         for b, name in enumerate(names):
             ca = rc.intensity_centroid(ours(poses[b])[0, 0])
             cd = rc.intensity_centroid(theirs(poses[b])[0, 0])
-            proj = project_points(poses[b], detector, centre[None])[0][0, 0].tolist()
+            proj = project_points_tensor(poses[b], detector, centre[None])[0][0, 0].tolist()
             assert np.hypot(*np.subtract(ca, cd)) < 0.05, f"{name}: centroid {ca} vs DiffDRR {cd}"
             assert np.hypot(*np.subtract(ca, proj)) < POINT_TOL_PX, f"{name}: centroid {ca} vs projection {proj}"
 
