@@ -6,7 +6,7 @@ Checks, each recorded in the JSON and the Markdown report:
 2. images: our renderer (several ``step_mm``) vs DiffDRR trilinear (default samples) and
    Siddon, at the three isoposes and random perturbations, on each detector size
    (global NCC, 13x13 patch NCC, relative L1, mean intensity ratio);
-3. projected points: ``geopose.geometry.project_points`` vs DiffDRR's
+3. projected points: ``geopose.geometry.project_points_tensor`` vs DiffDRR's
    ``perspective_projection`` for fiducials inside the head (px);
 4. bead centroid: a Gaussian bead's intensity centroid in our image vs DiffDRR's, and vs the
    projection of its centre (px);
@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 import renderer_common as rc
-from geopose.geometry import RigidTransform, project_points
+from geopose.geometry import RigidTransform, project_points_tensor
 from geopose.render import DRR, hu_to_density
 
 NCC_TARGET = 0.995
@@ -87,7 +87,7 @@ def compare_points(volume, names, poses, n_points: int = 40, seed: int = 0) -> d
     for size in (128, 256):
         det = rc.model_detector(size)
         adapter = rc.DiffDRRAdapter(volume, det)
-        ours, _ = project_points(poses, det, pts.expand(len(poses), -1, -1))
+        ours, _ = project_points_tensor(poses, det, pts.expand(len(poses), -1, -1))
         theirs = adapter.project(poses, pts.expand(len(poses), -1, -1)).double()
         err = (ours - theirs).norm(dim=-1)
         out[f"{size}"] = {"max_px": float(err.max()), "mean_px": float(err.mean()), "n_points": n_points * len(poses)}
@@ -106,7 +106,7 @@ def compare_bead(names, poses, device) -> list[dict]:
     with torch.no_grad():
         for b, name in enumerate(names):
             pose = poses[b]
-            proj, _ = project_points(pose, det, centre[None])
+            proj, _ = project_points_tensor(pose, det, centre[None])
             proj = proj[0, 0].tolist()
             c = {}
             for key, img in (("ours", ours(pose.to(device=device))), ("trilinear", tri(pose)), ("siddon", sid(pose))):
