@@ -15,7 +15,14 @@ from geopose.geometry.poses import pose_from_carm_angles, rotation_angle_rad
 from geopose.metrics import mncc
 from geopose.metrics.measures import pose_error_components
 from geopose.register import render_model_view
-from geopose.register.biplane import Observability, axis_disagreement_mm, fuse_patient_poses, patient_pose, view_poses
+from geopose.register.biplane import (
+    Observability,
+    axis_disagreement_mm,
+    common_axis,
+    fuse_patient_poses,
+    patient_pose,
+    view_poses,
+)
 from geopose.register.refine import greedy_refine_biplane
 
 SID_MM, SOD_MM = 1200.0, 800.0
@@ -95,6 +102,32 @@ def test_disagreement_is_measured_along_the_axis_both_views_see():
     assert axis_disagreement_mm({"pa": apart, "lat": X}, RIG) == pytest.approx(25.0, abs=0.5)
     assert axis_disagreement_mm({"pa": X, "lat": X}, RIG) == pytest.approx(0.0, abs=1e-9)
 
+
+
+def test_common_axis_is_normal_to_both_rays_and_only_it_is_held_by_the_tto_prior():
+    """PA + lateral share the superior-inferior axis; the TTO's rotation prior costs a rotation
+    about it and nothing for the rotations each view sees in-plane; one view has no common axis."""
+    torch = pytest.importorskip("torch")
+    from geopose.register.tto import ROTATION_PRIOR_PER_RAD2, _PatientParams
+
+    X = _patient()
+    axis = common_axis({"pa": X, "lat": X}, RIG)
+    assert np.linalg.norm(axis) == pytest.approx(1.0)
+    assert abs(axis @ _ray("pa", X)) < 1e-9 and abs(axis @ _ray("lat", X)) < 1e-9
+    assert abs(axis @ (X[:3, :3] @ [0.0, 0.0, 1.0])) > 0.99  # the patient's superior axis (rig 2-4 deg oblique)
+    assert common_axis({"pa": X}, RIG) is None
+
+    params = _PatientParams(X, RIG, "cpu")
+    with torch.no_grad():
+        params.w.copy_(torch.as_tensor(0.1 * axis))
+        assert float(params.rotation_prior()) == pytest.approx(ROTATION_PRIOR_PER_RAD2 * 0.01)
+        for key in ("pa", "lat"):  # rotation about a central ray: in-plane in that view, free
+            params.w.copy_(torch.as_tensor(0.1 * _ray(key, X)))
+            assert float(params.rotation_prior()) == pytest.approx(0.0, abs=1e-12)
+    alone = _PatientParams(X, {"pa": RIG["pa"]}, "cpu")
+    with torch.no_grad():
+        alone.w.copy_(torch.as_tensor(0.1 * _ray("pa", X)))
+        assert float(alone.rotation_prior()) == pytest.approx(ROTATION_PRIOR_PER_RAD2 * 0.01)
 
 class QueuedRefine:
     """A Refine network answering queued residuals ``D`` in call order (the caller applies ``inverse(D) @ T``)."""

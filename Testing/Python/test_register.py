@@ -246,6 +246,20 @@ def test_cancel_hook_stops_a_stage():
         greedy_refine(renderer, target, T, C.VIEW_PA, OracleRefine([]), ORACLE_RENDER_PX, monitor=Monitor(cancel=lambda: True))
 
 
+
+def test_a_part_of_a_stage_reports_within_its_share():
+    """Two TTO runs in one stage: the second's progress runs from 50 % to 100 %, labelled."""
+    seen = []
+    monitor = Monitor(lambda stage, f, m: seen.append((stage, f, m)))
+    for i, name in enumerate(("Refine", "DICOM angles")):
+        part = monitor.part(i, 2, f"from {name}")
+        for f in (0.0, 0.5, 1.0, 1.5):
+            part.step("tto", f, "iteration")
+    assert [f for _, f, _ in seen] == [0.0, 0.25, 0.5, 0.5, 0.5, 0.75, 1.0, 1.0]
+    assert seen[4] == ("tto", 0.5, "from DICOM angles: iteration")
+    with pytest.raises(RegistrationCancelled, match="tto"):
+        Monitor(cancel=lambda: True).part(1, 2, "x").step("tto", 0.1)
+
 def test_the_objective_is_the_same_in_numpy_and_in_the_tto(phantom_case):
     """The numpy score that picks the TTO's start and the torch loss the TTO minimises are one
     objective: every term agrees at the DICOM-angle pose and 5 deg / 10 mm away."""
@@ -280,9 +294,10 @@ class SideSwappedInit(OracleInit):
 
 
 def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
-    """Init 20 deg / 60 mm off, reading the lateral on the wrong side: the registration starts from
-    the DICOM-angle pose (the best of the candidates by the objective), ends no worse than it by
-    the same objective, and the lateral view carries the side doubt."""
+    """Init 20 deg / 60 mm off, reading the lateral on the wrong side: the DICOM-angle pose scores
+    best of the candidate starts, the TTO runs from it and from the best learned start, the result
+    comes from the DICOM angles' run and is no worse than that start by the same objective, and
+    the lateral view carries the side doubt."""
     case = phantom_case
     N, true, cta, runs = _read_phantom(case)
     far = {k: _perturb(true[k], (12.0, -10.0, 12.0), (40.0, -30.0, 30.0)) for k in true}
@@ -294,9 +309,13 @@ def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     )
     registration = result.registration
     assert set(registration.starts) == {"DICOM angles", "Init", "Refine"}
-    assert registration.chosen_start == "DICOM angles"
-    assert registration.starts["DICOM angles"] < registration.starts["Init"]
+    assert registration.starts["DICOM angles"] < min(registration.starts["Init"], registration.starts["Refine"])
+    learned = min(("Init", "Refine"), key=registration.starts.get)
+    assert set(registration.tto_runs) == set(registration.tto_objective) == {learned, "DICOM angles"}
+    assert registration.chosen_start == "DICOM angles" == min(registration.tto_objective, key=registration.tto_objective.get)
+    assert result.tto is registration.tto_runs["DICOM angles"]
     final = sum(objective_value(result.renderer, result.views[k].final_pose, result.views[k].prepared).loss for k in runs)
+    assert final == pytest.approx(registration.tto_objective["DICOM angles"], abs=1e-9)
     assert final <= registration.starts["DICOM angles"] + 1e-3
     lat = result.views["lat"].quality
     assert lat.flag != "ok" and any("reads this view as" in d for d in lat.reasons), lat

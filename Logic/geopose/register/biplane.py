@@ -21,7 +21,8 @@ from ..dsa import DSARun
 from ..geometry.detector import AP_REORIENT
 from ..geometry.poses import axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles
 
-__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "axis_disagreement_mm"]
+__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "common_axis",
+           "axis_disagreement_mm"]
 
 
 @dataclass(frozen=True)
@@ -84,13 +85,23 @@ def fuse_patient_poses(
     return out
 
 
+def common_axis(poses: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray]) -> np.ndarray | None:
+    """Unit vector (CTA frame) normal to the central rays of the first two views ``{view: X_v}``:
+    the axis both image planes contain (superior-inferior for PA + lateral); None for one view
+    or parallel arms."""
+    if len(poses) < 2:
+        return None
+    (ka, Xa), (kb, Xb) = list(poses.items())[:2]
+    common = np.cross(_camera_axes(np.asarray(Xa), nominal[ka])[:, 2], _camera_axes(np.asarray(Xb), nominal[kb])[:, 2])
+    norm = np.linalg.norm(common)
+    return None if norm < 1e-6 else common / norm
+
+
 def axis_disagreement_mm(estimates: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray]) -> float:
     """How far apart (mm) two views put the isocentre along the direction both see in-plane
-    (the common axis of their image planes: superior-inferior for PA + lateral)."""
-    (ka, Xa), (kb, Xb) = list(estimates.items())[:2]
-    za, zb = _camera_axes(Xa, nominal[ka])[:, 2], _camera_axes(Xb, nominal[kb])[:, 2]
-    common = np.cross(za, zb)
-    norm = np.linalg.norm(common)
-    if norm < 1e-6:  # parallel arms: no common in-plane axis beyond the image plane itself
+    (:func:`common_axis`); 0 for parallel arms."""
+    axis = common_axis(estimates, nominal)
+    if axis is None:
         return 0.0
-    return float(abs(np.dot(common / norm, np.asarray(Xa)[:3, 3] - np.asarray(Xb)[:3, 3])))
+    (_, Xa), (_, Xb) = list(estimates.items())[:2]
+    return float(abs(np.dot(axis, np.asarray(Xa)[:3, 3] - np.asarray(Xb)[:3, 3])))

@@ -259,9 +259,10 @@ def register_case(
             refined = {key: greedy_refine(renderer, targets[key], init_poses[key], inits[key].view, model_set.refine,
                                           render_px, options.refine_steps, monitor) for key in VIEW_KEYS}
 
-    # 5. The TTO's start: the best by the objective of the DICOM-angle pose, Init and Refine
-    #    (one patient pose; never worse than the acquisition's own geometry); then the TTO
-    #    (needs PyTorch).
+    # 5. The candidate starts scored by the objective: the DICOM-angle pose, Init and Refine (one
+    #    patient pose). The TTO (needs PyTorch) runs from the best learned start and from the
+    #    DICOM angles; the lower final objective wins, so the result is never worse, by the
+    #    objective, than the acquisition's own geometry optimised alike.
     finals = {key: refined[key].pose for key in VIEW_KEYS}
     tto_result: TTOResult | None = None
     with _timed(times, "tto", engine):
@@ -278,8 +279,15 @@ def register_case(
             notes.append(NO_TORCH_TTO_NOTE)
             monitor.step("tto", 1.0, NO_TORCH_TTO_NOTE)
         elif options.iterations > 0 and joint:
-            tto_result = test_time_optimise(tto_renderer, tto_views(case.views, finals), TTOSchedule(options.iterations),
-                                            rig=rig, monitor=monitor)
+            learned = min(("Init", "Refine"), key=registration.starts.get)
+            for i, name in enumerate((learned, "DICOM angles")):
+                run = test_time_optimise(tto_renderer, tto_views(case.views, view_poses(candidates[name], rig)),
+                                         TTOSchedule(options.iterations), rig=rig, monitor=monitor.part(i, 2, f"from {name}"))
+                registration.tto_runs[name] = run
+                registration.tto_objective[name] = sum(objective_value(renderer, run.poses[k], case.views[k]).loss
+                                                       for k in VIEW_KEYS)
+            registration.chosen_start = min(registration.tto_objective, key=registration.tto_objective.get)
+            tto_result = registration.tto_runs[registration.chosen_start]
             finals, registration.patient_pose = dict(tto_result.poses), tto_result.patient_pose
         elif options.iterations > 0:
             schedule = replace(PAPER_SCHEDULE, iterations=options.iterations)

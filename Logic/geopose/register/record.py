@@ -161,7 +161,10 @@ def build_record(
             "mode_doc": "biplane-rigid: one patient pose X for both views, camera poses X @ A_v with A_v from each run's "
             "DICOM angles (nominal_pose_centred); independent views: each view on its own (the published pipeline)",
             "tto_start": case.registration.chosen_start,
+            "tto_start_doc": "the start the result came from: the TTO runs from the best learned start and from the "
+            "DICOM angles and keeps the lower objective (without a TTO: the best start)",
             "start_objective": case.registration.starts,
+            "tto_objective": case.registration.tto_objective,
             "patient_pose_centred": None if case.registration.patient_pose is None else _m(case.registration.patient_pose),
             "nominal_pose_centred": {k: _m(A) for k, A in case.registration.rig.items()},
             "checks": case.registration.checks,

@@ -96,14 +96,17 @@ class ViewOutcome:
 class Registration:
     """How the case was registered: ``mode`` ``biplane-rigid`` (one patient pose ``X``, the camera
     poses ``X @ A_v``; ``rig`` holds the ``A_v`` from the DICOM angles) or ``independent views``;
-    the candidate starts of the TTO with their objective and the one ``chosen``; the consistency
-    ``checks`` of the two views."""
+    the candidate starts with their objective (``starts``), the TTO run from each start it was
+    run from (``tto_runs``) with its final objective (``tto_objective``), the start the result
+    came from (``chosen_start``); the consistency ``checks`` of the two views."""
 
     mode: str
     rig: dict[str, np.ndarray] = field(default_factory=dict)
     patient_pose: np.ndarray | None = None
     starts: dict[str, float] = field(default_factory=dict)
     chosen_start: str = ""
+    tto_runs: dict[str, "TTOResult"] = field(default_factory=dict)
+    tto_objective: dict[str, float] = field(default_factory=dict)
     checks: dict = field(default_factory=dict)
 
 

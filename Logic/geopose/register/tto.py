@@ -35,7 +35,7 @@ from .. import contract as C
 from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
-from .biplane import patient_pose
+from .biplane import common_axis, patient_pose
 from .objective import Objective, combine
 from .progress import Monitor
 
@@ -43,10 +43,12 @@ __all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "test_time_o
 
 #: The render channels the objective uses: the total density, the cranium and the vessels.
 TTO_CHANNELS = ("total", "cranium", "vessels")
-#: Weight (per rad^2) of a prior holding a patient pose's rotation near its start: the rotation
-#: about the axis both image planes share is nearly unobservable, and without it NAdam's
-#: normalised steps wander along that flat direction (1 deg costs 0.003, a tenth of what a
-#: 1-px misalignment of the vessels does).
+#: Weight (per rad^2) of a prior holding a patient pose's rotation about the axis both image
+#: planes contain (:func:`.biplane.common_axis`) near its start: that rotation is out of plane
+#: in both views and nearly unobservable, and without the prior NAdam's normalised steps wander
+#: along it (1 deg costs 0.003, a tenth of what a 1-px misalignment of the vessels does). The
+#: other two rotations are in-plane in one view and free (docs/tto_schedule.md: a prior on all
+#: three held the start's rotation error).
 ROTATION_PRIOR_PER_RAD2 = 10.0
 
 
@@ -168,6 +170,13 @@ class _PatientParams:
         self.rig = {k: torch.as_tensor(A, dtype=torch.float64, device=device) for k, A in rig.items()}
         self.w = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
         self.v = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
+        axis = common_axis({k: X0 for k in rig}, rig)
+        self.prior_axis = None if axis is None else torch.as_tensor(axis, dtype=torch.float64, device=device)
+
+    def rotation_prior(self):
+        """``ROTATION_PRIOR_PER_RAD2 * (w . common axis)^2`` (all of ``|w|^2`` without a common axis)."""
+        w2 = (self.w ** 2).sum() if self.prior_axis is None else (self.w @ self.prior_axis) ** 2
+        return ROTATION_PRIOR_PER_RAD2 * w2
 
     def groups(self, schedule: TTOSchedule) -> list[dict]:
         return [{"params": [self.w], "lr": schedule.rotation_lr_rad}, {"params": [self.v], "lr": schedule.translation_lr_mm}]
@@ -258,12 +267,12 @@ def test_time_optimise(
         if biplanar and len(names) == 2:
             total = total + C.BIPLANAR_WEIGHT * biplanar_penalty(rotations[names[0]], rotations[names[1]]).sum()
         if joint:
-            total = total + ROTATION_PRIOR_PER_RAD2 * (params.w ** 2).sum()
+            total = total + params.rotation_prior()
         return total, losses, {k: p.detach()[0].cpu().numpy() for k, p in poses.items()}
 
     def record_best(losses: dict, poses: dict, it: int) -> None:
         if joint:
-            prior = ROTATION_PRIOR_PER_RAD2 * float((params.w.detach() ** 2).sum())
+            prior = float(params.rotation_prior().detach())
             consider("patient", sum(v[0] for v in losses.values()) + prior, {k: v[1] for k, v in losses.items()}, poses, it)
         else:  # per view; the paper keeps the pose of best mNCC
             for name in names:
