@@ -15,9 +15,9 @@ Read top to bottom, :func:`register_case` is the whole method (paper section 2.3
 By default the two runs are one biplane acquisition: one patient pose ``X`` places both
 C-arms (``T_v = X @ A_v``, ``A_v`` from each run's DICOM geometry; ``biplane.py``). Init's
 per-view estimates are fused into ``X`` by what each view observes, Refine's proposals
-likewise, and the TTO optimises ``X`` against both views; it starts from whichever of the
-DICOM-angle pose, Init and Refine has the lowest objective (``objective.py``), so the
-result is never worse, by the objective, than the acquisition's own geometry.
+likewise, and the TTO optimises ``X`` against both views, from the better (by the objective,
+``objective.py``) of Init and Refine and from the DICOM-angle pose; the lower final objective
+wins, so the result is never worse, by the objective, than the acquisition's own geometry.
 ``independent_views=True`` runs the published pipeline: each view on its own, the paper's
 objective and schedule.
 
