@@ -26,6 +26,7 @@ from geopose.options import RegistrationOptions
 from geopose.phantom.cli import write_phantom
 from geopose.register import (
     PAPER_SCHEDULE,
+    ConsoleProgress,
     Monitor,
     RegistrationCancelled,
     TTOSchedule,
@@ -259,6 +260,19 @@ def test_a_part_of_a_stage_reports_within_its_share():
     assert seen[4] == ("tto", 0.5, "from DICOM angles: iteration")
     with pytest.raises(RegistrationCancelled, match="tto"):
         Monitor(cancel=lambda: True).part(1, 2, "x").step("tto", 0.1)
+
+
+def test_console_bar_ends_its_line_when_a_stage_stops():
+    """An error during a stage prints on a line of its own, not after the bar."""
+    import io
+
+    stream = io.StringIO()
+    bar = ConsoleProgress(stream)
+    bar("prepare", 0.5, "DSA LAT")
+    bar.finish()
+    assert stream.getvalue().endswith("DSA LAT".ljust(50) + "\n")
+    bar.finish()  # nothing open: nothing written
+    assert stream.getvalue().count("\n") == 1
 
 def test_the_objective_is_the_same_in_numpy_and_in_the_tto(phantom_case):
     """The numpy score that picks the TTO's start and the torch loss the TTO minimises are one

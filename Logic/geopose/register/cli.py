@@ -111,10 +111,13 @@ def register_files(
         cranium = load_cta(cranium_mask, check_hu=False) if cranium_mask else None
         seg = load_cta(segmentation, check_hu=False) if segmentation else None
         _, _, model_set = resolve_engine(options, models, allow_unverified=allow_unverified_models)
-        case = register_case(
-            cta, runs, models=model_set, options=options, cranium_mask=cranium, segmentation=seg,
-            progress=progress if progress is not None else ConsoleProgress(),
-        )
+        bar = ConsoleProgress() if progress is None else None
+        try:
+            case = register_case(cta, runs, models=model_set, options=options, cranium_mask=cranium, segmentation=seg,
+                                 progress=progress or bar)
+        finally:
+            if bar is not None:
+                bar.finish()
         truth = load_truth(cta_path)
         inputs = {"cta": {"path": str(cta_path), "sha256": cta.metadata.get("sha256")}}
         for key, path in (("pa", dsa_pa), ("lat", dsa_lat)):

@@ -57,4 +57,12 @@ class ConsoleProgress:
         self.stream.write(f"\r{stage:<12s} [{bar}] {fraction * 100:5.1f}% {message[:50]:<50s}")
         if stage == "done":
             self.stream.write("\n")
+            self.stage = None
         self.stream.flush()
+
+    def finish(self) -> None:
+        """End an unfinished bar's line (a stage stopped by an error), so the next message starts a line."""
+        if self.stage is not None:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.stage = None
