@@ -52,7 +52,7 @@ sys.meta_path.insert(0, _NoTorch())
 """
 
 _RUN = """
-import json, resource, sys, time
+import json, sys, time
 folder, backend, iterations, threads = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 try:
     import torch
@@ -68,9 +68,13 @@ cta = load_cta(f"{folder}/cta.nii.gz")
 seg = load_cta(f"{folder}/vessels.nii.gz", check_hu=False)
 runs = {k: read_dsa(f"{folder}/dsa_{k}.dcm") for k in ("pa", "lat")}
 read_s = time.perf_counter() - t0
-rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+def peak_rss_gb():
+    # VmHWM: this process's own peak (ru_maxrss would include the parent's peak from before exec)
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1e6
+rss_before = peak_rss_gb()
 result = register_case(cta, runs, segmentation=seg, options=RegistrationOptions(backend=backend, iterations=iterations))
-out = dict(result.runtimes_s, read=read_s, peak_rss_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+out = dict(result.runtimes_s, read=read_s, peak_rss_gb=peak_rss_gb(),
            rss_after_reading_gb=rss_before, engine=result.engine, notes=result.notes,
            poses={k: v.final_pose.tolist() for k, v in result.views.items()})
 print("RESULT " + json.dumps(out))
