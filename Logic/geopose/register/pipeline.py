@@ -177,10 +177,14 @@ def _consistency_doubts(key: str, init: InitEstimate, label: int, registration: 
     return tuple(doubts)
 
 
-def _stage_agreement(learned: np.ndarray, final: np.ndarray) -> tuple[float, float]:
-    """(deg, mm) the final pose moved from the learned estimate."""
+def stage_agreement(learned: np.ndarray, final: np.ndarray) -> tuple[float, float]:
+    """How far the final camera pose ``(4, 4)`` moved from the learned one: the rotation (deg) and
+    the shift (mm) of the CTA's centre in the camera frame (a rotation about the centre moves the
+    source by hundreds of mm but the patient not at all)."""
     moved = invert(learned) @ final
-    return float(np.degrees(rotation_angle_rad(moved[:3, :3]))), float(np.linalg.norm(final[:3, 3] - learned[:3, 3]))
+    centre = np.array([0.0, 0.0, 0.0, 1.0])
+    shift = (invert(final) @ centre - invert(learned) @ centre)[:3]
+    return float(np.degrees(rotation_angle_rad(moved[:3, :3]))), float(np.linalg.norm(shift))
 
 
 def register_case(
@@ -300,7 +304,7 @@ def register_case(
     with _timed(times, "score", engine):
         for key in VIEW_KEYS:
             score, dice = score_view(renderer, finals[key], case.views[key])
-            quality: Quality = assess(score, dice, *_stage_agreement(refined[key].pose, finals[key]),
+            quality: Quality = assess(score, dice, *stage_agreement(refined[key].pose, finals[key]),
                                       doubts=_consistency_doubts(key, inits[key], labels[key], registration))
             outcomes[key] = ViewOutcome(key, case.views[key], inits[key], init_poses[key], refined[key], finals[key], score,
                                         dice, quality)

@@ -5,8 +5,9 @@ Rule (thresholds named below; set on phantom runs, provisional for real data):
 * ``failed`` when the final mNCC is below ``MNCC_FAILED`` or the silhouette Dice
   (projected CTA cranium vs DSA cranium mask) is below ``DICE_FAILED``;
 * ``doubtful`` when mNCC < ``MNCC_OK``, Dice < ``DICE_OK``, the final pose
-  moved more than ``AGREEMENT_DEG`` / ``AGREEMENT_MM`` away from the learned
-  estimate (Init + Refine), i.e. the stages disagree, or a consistency check of the
+  turned more than ``AGREEMENT_DEG`` or moved the CTA's centre more than
+  ``AGREEMENT_MM`` in the camera frame away from the learned estimate (Init +
+  Refine; ``pipeline.stage_agreement``), i.e. the stages disagree, or a consistency check of the
   case failed (the pipeline passes its reasons: the network's lateral side against the
   acquisition angle's, two views placing the patient more than ``VIEW_DISAGREEMENT_MM``
   apart along the axis both see);
@@ -51,7 +52,8 @@ def assess(
         doubtful.append(f"silhouette Dice {silhouette_dice:.2f} < {DICE_OK}")
     if stage_rotation_deg > AGREEMENT_DEG or stage_translation_mm > AGREEMENT_MM:
         doubtful.append(
-            f"optimisation moved {stage_rotation_deg:.1f} deg / {stage_translation_mm:.1f} mm from the learned estimate"
+            f"optimisation turned the pose {stage_rotation_deg:.1f} deg and moved the CTA centre {stage_translation_mm:.1f} mm "
+            "from the learned estimate"
         )
     if failed:
         return Quality("failed", tuple(failed + doubtful))
