@@ -172,6 +172,7 @@ def test_register_phantom_end_to_end(module, tmp_path):
     """The whole pipeline through GeoPoseLogic.register on a phantom case (needs the
     `geopose phantom` command and shipped models)."""
     from geopose.cli import main as geopose_main
+    from geopose.phantom.labels import vessel_mask
 
     models = module.GeoPoseLogic.defaultModelsFolder()
     if not any(models.glob("*.pt")):
@@ -181,7 +182,7 @@ def test_register_phantom_end_to_end(module, tmp_path):
     scene = slicer.mrmlScene
     cta = mrml.read_volume_node(scene, tmp_path / "cta.nii.gz", "CTA")
     labels = mrml.volume_from_node(mrml.read_volume_node(scene, tmp_path / "labels.nii.gz", "labels", labelmap=True))
-    seg = mrml.segmentation_from_labelmap(scene, labels.like((labels.array > 0).astype(np.uint8)), {1: ("vessels", (1, 0, 0))}, "V")
+    seg = mrml.segmentation_from_labelmap(scene, labels.like(vessel_mask(labels.array).astype(np.uint8)), {1: ("vessels", (1, 0, 0))}, "V")
     logic = module.GeoPoseLogic()
     pa, _ = logic.importDSA(str(tmp_path / "dsa_pa.dcm"), "PA", ctaNode=cta)
     lat, _ = logic.importDSA(str(tmp_path / "dsa_lat.dcm"), "LAT", ctaNode=cta)
@@ -190,7 +191,7 @@ def test_register_phantom_end_to_end(module, tmp_path):
     ctaVol = mrml.volume_from_node(cta)
     np.testing.assert_array_equal(ctaVol.array, before)
     for key in ("pa", "lat"):
-        want = ctaVol.centred_to_ras @ out["result"].views[key].final_pose[0].double().numpy()
+        want = ctaVol.centred_to_ras @ out["result"].views[key].final_pose
         np.testing.assert_allclose(mrml.transform_matrix(out[f"{key}Pose"]), want, atol=1e-6)
         # ... and equal the result record (result.json) of the same registration
         np.testing.assert_allclose(mrml.transform_matrix(out[f"{key}Pose"]), np.asarray(out["record"]["views"][key]["pose_ras"]), atol=1e-6)
