@@ -299,6 +299,20 @@ def _pixel_offset(data: bytes) -> int:
     return pos if pos > 0 else len(data)
 
 
+def _mutate_json_file(path: Path, rng: np.random.Generator, mutation: str,
+                      field: Callable[[str, np.random.Generator], tuple[str, str]]) -> str:
+    """Mutate a file in place: one JSON value set by ``field`` (mutation ``field``), else its bytes
+    (a file that is not JSON, e.g. a model, only the latter); returns what was done."""
+    data = path.read_bytes()
+    if mutation == "field":
+        new, detail = field(data.decode(), rng)
+        path.write_text(new)
+    else:
+        mutated, detail = _mutate_bytes(data, rng, mutation, len(data))
+        path.write_bytes(mutated)
+    return detail
+
+
 def _mutate_bytes(data: bytes, rng: np.random.Generator, mutation: str, header_end: int) -> tuple[bytes, str]:
     if mutation == "flip":
         out, positions = flip_bits(data, rng)
@@ -585,26 +599,14 @@ def run_case(seed: int, index: int, root: Path, originals: dict, work: Path) -> 
     elif target == "dsa_sidecar":
         shutil.copytree(root / "dsa_sidecar", case_dir / "dsa")
         image = case_dir / "dsa" / "run.nii"
-        side = sidecar_path(image)
-        text = side.read_bytes()
-        if mutation == "field":
-            new, detail = _json_field(text.decode(), rng)
-            side.write_text(new)
-        else:
-            data, detail = _mutate_bytes(text, rng, mutation, len(text))
-            side.write_bytes(data)
+        detail = _mutate_json_file(sidecar_path(image), rng, mutation, _json_field)
         outcome, why = _classify_dsa(lambda: read_dsa(image), original, lambda: _sidecar_oracle(image, original))
     else:
         models = case_dir / "models"
         shutil.copytree(root / "models", models)
         victim = models / MANIFEST_NAME if mutation != "flip" or rng.random() < 0.5 else models / str(rng.choice(["geopose_init.pt", "geopose_refine.pt"]))
-        data = victim.read_bytes()
-        if mutation == "field":
-            new, detail = _manifest_field(data.decode(), rng)
-            victim.write_text(new)
-        else:
-            data, detail = _mutate_bytes(data, rng, mutation, len(data))
-            victim.write_bytes(data)
+        detail = _mutate_json_file(victim, rng, mutation, _manifest_field)
+        if mutation != "field":
             detail = f"{victim.name}: {detail}"
         outcome, why = _classify_models(models, root / "models", original)
     return target, f"{mutation}: {detail}"[:300], outcome, why
