@@ -13,9 +13,10 @@ scripts (``python -c``) use it.
 from __future__ import annotations
 
 import importlib.util
-import os
 import sys
 from pathlib import Path
+
+from shared_folder import find_shared
 
 REPO = Path(__file__).resolve().parents[2]
 QT_STAND_INS = REPO / "Testing" / "QtStandIns"
@@ -33,9 +34,8 @@ _APP_NAMES = ("app", "selfTests", "qMRMLWidget", "qMRMLNodeComboBox", "qMRMLTabl
 
 
 def slicer_api() -> Path:
-    """``shared/slicer-api`` (``$GEOPOSE_SHARED`` or beside the repository, as in conftest)."""
-    shared = Path(os.environ["GEOPOSE_SHARED"]) if os.environ.get("GEOPOSE_SHARED") else REPO.parent / "shared"
-    return shared / "slicer-api"
+    """``shared/slicer-api`` (:func:`shared_folder.find_shared`, as every test finds ``shared/``)."""
+    return find_shared() / "slicer-api"
 
 
 def _stand_in_classes():
