@@ -103,7 +103,6 @@ def test_disagreement_is_measured_along_the_axis_both_views_see():
     assert axis_disagreement_mm({"pa": X, "lat": X}, RIG) == pytest.approx(0.0, abs=1e-9)
 
 
-
 def test_common_axis_is_normal_to_both_rays_and_only_it_is_held_by_the_tto_prior():
     """PA + lateral share the superior-inferior axis; the TTO's rotation prior costs a rotation
     about it and nothing for the rotations each view sees in-plane; one view has no common axis."""
@@ -128,6 +127,7 @@ def test_common_axis_is_normal_to_both_rays_and_only_it_is_held_by_the_tto_prior
     with torch.no_grad():
         alone.w.copy_(torch.as_tensor(0.1 * _ray("pa", X)))
         assert float(alone.rotation_prior()) == pytest.approx(ROTATION_PRIOR_PER_RAD2 * 0.01)
+
 
 class QueuedRefine:
     """A Refine network answering queued residuals ``D`` in call order (the caller applies ``inverse(D) @ T``)."""

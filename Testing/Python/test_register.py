@@ -247,7 +247,6 @@ def test_cancel_hook_stops_a_stage():
         greedy_refine(renderer, target, T, C.VIEW_PA, OracleRefine([]), ORACLE_RENDER_PX, monitor=Monitor(cancel=lambda: True))
 
 
-
 def test_a_part_of_a_stage_reports_within_its_share():
     """Two TTO runs in one stage: the second's progress runs from 50 % to 100 %, labelled."""
     seen = []
@@ -273,6 +272,7 @@ def test_console_bar_ends_its_line_when_a_stage_stops():
     assert stream.getvalue().endswith("DSA LAT".ljust(50) + "\n")
     bar.finish()  # nothing open: nothing written
     assert stream.getvalue().count("\n") == 1
+
 
 def test_the_objective_is_the_same_in_numpy_and_in_the_tto(phantom_case):
     """The numpy score that picks the TTO's start and the torch loss the TTO minimises are one

@@ -299,10 +299,10 @@ def _pixel_offset(data: bytes) -> int:
     return pos if pos > 0 else len(data)
 
 
-def _mutate_json_file(path: Path, rng: np.random.Generator, mutation: str,
+def _mutate_file(path: Path, rng: np.random.Generator, mutation: str,
                       field: Callable[[str, np.random.Generator], tuple[str, str]]) -> str:
-    """Mutate a file in place: one JSON value set by ``field`` (mutation ``field``), else its bytes
-    (a file that is not JSON, e.g. a model, only the latter); returns what was done."""
+    """Mutate a file in place: for mutation ``field`` one JSON value set by ``field``, otherwise its
+    bytes (any file, e.g. a model); returns what was done."""
     data = path.read_bytes()
     if mutation == "field":
         new, detail = field(data.decode(), rng)
@@ -599,13 +599,13 @@ def run_case(seed: int, index: int, root: Path, originals: dict, work: Path) -> 
     elif target == "dsa_sidecar":
         shutil.copytree(root / "dsa_sidecar", case_dir / "dsa")
         image = case_dir / "dsa" / "run.nii"
-        detail = _mutate_json_file(sidecar_path(image), rng, mutation, _json_field)
+        detail = _mutate_file(sidecar_path(image), rng, mutation, _json_field)
         outcome, why = _classify_dsa(lambda: read_dsa(image), original, lambda: _sidecar_oracle(image, original))
     else:
         models = case_dir / "models"
         shutil.copytree(root / "models", models)
         victim = models / MANIFEST_NAME if mutation != "flip" or rng.random() < 0.5 else models / str(rng.choice(["geopose_init.pt", "geopose_refine.pt"]))
-        detail = _mutate_json_file(victim, rng, mutation, _manifest_field)
+        detail = _mutate_file(victim, rng, mutation, _manifest_field)
         if mutation != "field":
             detail = f"{victim.name}: {detail}"
         outcome, why = _classify_models(models, root / "models", original)

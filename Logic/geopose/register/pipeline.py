@@ -40,7 +40,7 @@ import numpy as np
 from .. import contract as C
 from ..dsa import DSARun, PreparedDSA
 from ..errors import InputError
-from ..geometry.poses import invert, rotation_angle_rad
+from ..metrics.measures import pose_error_components
 from ..metrics.similarity import mncc
 from ..nets.predictors import ModelSet, load_models, resolve_torch_device
 from ..options import RegistrationOptions
@@ -177,14 +177,18 @@ def _consistency_doubts(key: str, init: InitEstimate, label: int, registration: 
     return tuple(doubts)
 
 
+def _pair_objective(renderer: Renderer, poses: Mapping[str, np.ndarray], case: PreparedCase) -> float:
+    """The objective (``objective.py``) of both views at ``poses``, summed: how starts and TTO runs are compared."""
+    return sum(objective_value(renderer, poses[k], case.views[k]).loss for k in VIEW_KEYS)
+
+
 def stage_agreement(learned: np.ndarray, final: np.ndarray) -> tuple[float, float]:
     """How far the final camera pose ``(4, 4)`` moved from the learned one: the rotation (deg) and
-    the shift (mm) of the CTA's centre in the camera frame (a rotation about the centre moves the
-    source by hundreds of mm but the patient not at all)."""
-    moved = invert(learned) @ final
-    centre = np.array([0.0, 0.0, 0.0, 1.0])
-    shift = (invert(final) @ centre - invert(learned) @ centre)[:3]
-    return float(np.degrees(rotation_angle_rad(moved[:3, :3]))), float(np.linalg.norm(shift))
+    the shift (mm) of the CTA's centre in the camera frame (:func:`pose_error_components`; a
+    rotation about the centre moves the source by hundreds of mm but the patient not at all)."""
+    parts = pose_error_components(final, learned)
+    return (float(np.hypot(parts["in_plane_rotation_deg"], parts["out_of_plane_rotation_deg"])),
+            float(np.hypot(parts["in_plane_mm"], parts["depth_mm"])))
 
 
 def register_case(
@@ -272,10 +276,7 @@ def register_case(
     with _timed(times, "tto", engine):
         if joint:
             candidates = {"DICOM angles": np.eye(4), "Init": X_init, "Refine": patient_pose(refined["pa"].pose, rig["pa"])}
-            registration.starts = {
-                name: sum(objective_value(renderer, X @ rig[k], case.views[k]).loss for k in VIEW_KEYS)
-                for name, X in candidates.items()
-            }
+            registration.starts = {name: _pair_objective(renderer, view_poses(X, rig), case) for name, X in candidates.items()}
             registration.chosen_start = min(registration.starts, key=registration.starts.get)
             registration.patient_pose = candidates[registration.chosen_start]
             finals = view_poses(registration.patient_pose, rig)
@@ -288,8 +289,7 @@ def register_case(
                 run = test_time_optimise(tto_renderer, tto_views(case.views, view_poses(candidates[name], rig)),
                                          TTOSchedule(options.iterations), rig=rig, monitor=monitor.part(i, 2, f"from {name}"))
                 registration.tto_runs[name] = run
-                registration.tto_objective[name] = sum(objective_value(renderer, run.poses[k], case.views[k]).loss
-                                                       for k in VIEW_KEYS)
+                registration.tto_objective[name] = _pair_objective(renderer, run.poses, case)
             registration.chosen_start = min(registration.tto_objective, key=registration.tto_objective.get)
             tto_result = registration.tto_runs[registration.chosen_start]
             finals, registration.patient_pose = dict(tto_result.poses), tto_result.patient_pose
