@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import faulthandler
 import multiprocessing
+import multiprocessing.connection as mp_connection
 import os
 import resource
 import threading
@@ -208,12 +209,17 @@ def run_cases(
             start = time.perf_counter()
             conn.send(index)
             result, outcome = None, "hang"
-            if conn.poll(timeout_s):
+            # Wait on the worker's exit as well as its pipe: a worker forked by another lane can hold a copy
+            # of this pipe's write end, so a dead worker need not close the pipe.
+            ready = mp_connection.wait([conn, proc.sentinel], timeout_s)
+            if conn in ready or conn.poll(0):
                 try:
                     target, mutation, outcome, detail, seconds = conn.recv()
                     result = CaseResult(index, target, mutation, outcome, detail, seconds)
                 except (EOFError, OSError):  # the worker died
                     outcome = "crash"
+            elif ready:
+                outcome = "crash"
             if result is None:
                 if outcome == "hang":
                     proc.kill()
