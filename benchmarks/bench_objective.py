@@ -61,6 +61,14 @@ patient pose for both views drifts about a third as far; its weight matters litt
 vessel channel holds every vessel of the CTA, while the MAP shows the injected ones, so the
 non-opacified side adds a small bias. Registering the views one by one (paper schedule) with the
 same objective drifts further than one patient pose: each view's depth is free to wander.
+
+Tried and not kept (2026-12-02): fitting the vessels on the patient's left and right with separate
+non-negative weights (the multiple correlation of the MAP's vessel image with both, so a
+unilateral injection is compared with its own territory). With the vessel channel restricted
+to the injected arteries (an oracle) the drift on seeds 6000-6004 fell from 0.36 to 0.25 mm; the
+fit itself, run through the whole benchmark on validation seeds 6000-6009, left the drift (0.2 mm)
+and the final result (2.0 mm) unchanged and made the TTO from the DICOM angles worse (3.8 -> 5.9
+mm mean): two free weights give far starts more ways to explain misplaced vessels.
 """
 
 #: The reach row: this objective from a perturbed start.
