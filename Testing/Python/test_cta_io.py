@@ -13,7 +13,7 @@ import SimpleITK as sitk
 from pydicom.dataset import FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
-from geopose.cta import cranium_mask_from_cta, load_cta, save_volume, vessel_mask_from_cta
+from geopose.cta import cranium_mask_from_cta, load_cta, masks, save_volume, vessel_mask_from_cta
 from geopose.volume import Volume
 from geopose.errors import InputError
 
@@ -145,6 +145,23 @@ def test_masks_on_synthetic_skull_with_vessel():
     assert (vessels & tube).sum() / tube.sum() > 0.8  # most of the vessel found
     assert vessels[(r > 33) & (r < 34)].sum() == 0  # skull rim excluded
     assert (vessels & ~tube).sum() < 0.05 * tube.sum()
+
+
+def test_vessel_mask_of_a_fine_grid_is_found_on_the_working_grid():
+    """At 0.5 mm the vessel mask is computed on 1 mm blocks and mapped back: contrast voxels closer to
+    dense bone than BONE_MARGIN_MM less one working voxel are dropped, those farther than it plus
+    one are kept, and the record says which grid."""
+    spacing = 0.5
+    a = np.full((24, 48, 80), 300.0, np.float32)  # contrast everywhere ...
+    a[:, :, :20] = 1000.0  # ... beside a bone slab (x < 10 mm)
+    vol = Volume(a, np.diag([spacing, spacing, spacing, 1.0]))
+    result = vessel_mask_from_cta(vol, vol.like(np.ones(a.shape, np.uint8)))
+    assert result.metadata["method"].endswith("on a 1 mm working grid")
+    vessels = result.array
+    distance_mm = (np.arange(80) - 19) * spacing  # from the slab's last voxel, along x
+    tolerance = masks.VESSEL_WORK_SPACING_MM
+    assert not vessels[:, :, distance_mm <= masks.BONE_MARGIN_MM - tolerance].any()
+    assert vessels[:, :, distance_mm > masks.BONE_MARGIN_MM + tolerance].all()
 
 
 def test_cranium_mask_needs_bone():

@@ -25,6 +25,9 @@ VESSEL_HU_RANGE = (150.0, 700.0)
 #: Dense bone (HU): voxels within :data:`BONE_MARGIN_MM` of it are not vessel (partial-volume rim).
 DENSE_BONE_HU = 700.0
 BONE_MARGIN_MM = 2.5
+#: The vessel mask is computed on a grid no finer than this (mm; HU block-averaged, the cranium
+#: mask by majority), then mapped back by nearest neighbour: at 0.5 mm it costs 8 s on 2 cores.
+VESSEL_WORK_SPACING_MM = 1.0
 #: Vessel components smaller than this (mm^3) are dropped as noise.
 MIN_VESSEL_COMPONENT_MM3 = 10.0
 
@@ -103,21 +106,36 @@ def vessel_mask_from_cta(volume: Volume, cranium: Volume) -> Volume:
     Voxels in :data:`VESSEL_HU_RANGE` (150..700 HU) inside ``cranium`` that lie more
     than :data:`BONE_MARGIN_MM` from dense bone (> 700 HU; this drops the partial-volume
     rim of the skull and the skull base where bone and lumen overlap in HU), keeping
-    connected components of at least :data:`MIN_VESSEL_COMPONENT_MM3`. Calcifications,
+    connected components of at least :data:`MIN_VESSEL_COMPONENT_MM3`; on a CTA finer than
+    :data:`VESSEL_WORK_SPACING_MM` all of it on a working grid of that size. Calcifications,
     enhancing dura/sinuses and vessels touching bone are not separated: use it as an
     approximation (e.g. a DRR vessel channel), never as a segmentation.
     """
     if cranium.array.shape != volume.array.shape:
         raise InputError(f"cranium mask shape {cranium.array.shape} does not match the CTA grid {volume.array.shape}")
+    method = "approximate: contrast HU range away from bone inside the cranium"
+    factors = [max(1, round(VESSEL_WORK_SPACING_MM / s)) for s in volume.spacing_mm]
+    if max(factors) == 1:
+        return volume.like(_vessel_mask(volume.array, cranium.array > 0, volume.spacing_mm), kind="vessel_mask", method=method)
+    full = sitk_from_volume(volume)
+    work = sitk.BinShrink(sitk.Cast(full, sitk.sitkFloat32), factors)
+    work_cranium = sitk.BinShrink(sitk.Cast(sitk_from_volume(cranium) > 0, sitk.sitkFloat32), factors) > 0.5
+    small = sitk.GetImageFromArray(_vessel_mask(sitk.GetArrayFromImage(work), sitk.GetArrayFromImage(work_cranium) > 0,
+                                                work.GetSpacing()))
+    small.CopyInformation(work)
+    out = sitk.GetArrayFromImage(sitk.Resample(small, full, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8))
+    return volume.like(out, kind="vessel_mask", method=f"{method}, on a {VESSEL_WORK_SPACING_MM:g} mm working grid")
+
+
+def _vessel_mask(a: np.ndarray, cranium: np.ndarray, spacing_mm) -> np.ndarray:
+    """The rule of :func:`vessel_mask_from_cta` on one grid: ``a`` HU and ``cranium`` bool ``[k, j, i]``,
+    voxel sizes ``spacing_mm`` (i, j, k); uint8 {0, 1}."""
     lo, hi = VESSEL_HU_RANGE
-    a = volume.array
-    candidate = (a >= lo) & (a <= hi) & (cranium.array > 0)
-    dense = sitk_from_volume(volume.like((a > DENSE_BONE_HU).astype(np.uint8)))
-    near_bone = sitk.GetArrayFromImage(sitk.BinaryDilate(dense, _radius_vox(BONE_MARGIN_MM, volume.spacing_mm), sitk.sitkBall))
+    candidate = (a >= lo) & (a <= hi) & cranium
+    dense = sitk.GetImageFromArray((a > DENSE_BONE_HU).astype(np.uint8))
+    near_bone = sitk.GetArrayFromImage(sitk.BinaryDilate(dense, _radius_vox(BONE_MARGIN_MM, spacing_mm), sitk.sitkBall))
     candidate &= near_bone == 0
-    voxel_mm3 = float(np.prod(volume.spacing_mm))
-    min_voxels = max(1, int(np.ceil(MIN_VESSEL_COMPONENT_MM3 / voxel_mm3)))
+    min_voxels = max(1, int(np.ceil(MIN_VESSEL_COMPONENT_MM3 / float(np.prod(spacing_mm)))))
     cc = sitk.ConnectedComponent(sitk.GetImageFromArray(candidate.astype(np.uint8)), True)
     kept = sitk.RelabelComponent(cc, minimumObjectSize=min_voxels)
-    out = (sitk.GetArrayFromImage(kept) > 0).astype(np.uint8)
-    return volume.like(out, kind="vessel_mask", method="approximate: contrast HU range away from bone inside the cranium")
+    return (sitk.GetArrayFromImage(kept) > 0).astype(np.uint8)
