@@ -107,7 +107,9 @@ def real_head_case(name: str, cta: Volume, seed: int, notes: list[str]) -> Bench
     """A real head CT (HU, no contrast) with a PA + lateral run simulated from it at sampled
     clinical geometries, the head tilted on the angiography table as in the phantom world
     (``table_tilt``): the runs hold motion residue and noise only, so the measurable results
-    are pose errors, NCC and the cranium silhouette."""
+    are pose errors, NCC and the cranium silhouette. Its vessel segmentation is empty: neither
+    the CT nor the runs show opacified vessels, so the registration has no vessel term (the
+    approximate mask of a non-contrast CT would hold dura and calcifications, compared with noise)."""
     cranium = cranium_mask_from_cta(cta)
     rng = np.random.default_rng([seed, 7])
     k, j, i = np.nonzero(cranium.array)
@@ -121,8 +123,10 @@ def real_head_case(name: str, cta: Volume, seed: int, notes: list[str]) -> Bench
         acq = replace(sample_acquisition(rng, role), table_rotation=table)
         sim = simulate_dsa(_RealHead(seed), acq, acq.pose(iso), rng, drr=drr, max_matrix_px=BENCH_MATRIX_PX)
         runs[key], poses[key] = sim.run, sim.pose
-    notes = notes + ["runs simulated from the CT itself (motion residue + noise, no arteries): no mPCD or clDice"]
-    return BenchCase(f"{name}-{seed}", cta, cranium, None, runs, poses, None, notes)
+    notes = notes + ["runs simulated from the CT itself (motion residue + noise, no arteries): no mPCD or clDice, "
+                     "no vessel term"]
+    no_vessels = cta.like(np.zeros(cta.array.shape, np.uint8))
+    return BenchCase(f"{name}-{seed}", cta, cranium, no_vessels, runs, poses, None, notes)
 
 
 def headsq_case(path: str | Path, seed: int = 0) -> BenchCase:
