@@ -36,6 +36,19 @@ def _radius_vox(radius_mm: float, spacing_mm: tuple[float, float, float]) -> lis
     return [max(1, int(round(radius_mm / s))) for s in spacing_mm]
 
 
+def _work_factors(volume: Volume, work_spacing_mm: float) -> list[int]:
+    """Block factors (i, j, k) that make ``volume``'s voxels about ``work_spacing_mm`` (1 where finer is not needed)."""
+    return [max(1, round(work_spacing_mm / s)) for s in volume.spacing_mm]
+
+
+def _back_to_full(mask: sitk.Image, work: sitk.Image, full: sitk.Image) -> np.ndarray:
+    """A uint8 mask computed on the working grid ``work``, mapped onto ``full`` by nearest neighbour."""
+    mask.CopyInformation(work)
+    if work is not full:
+        mask = sitk.Resample(mask, full, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
+    return sitk.GetArrayFromImage(mask).astype(np.uint8)
+
+
 def _largest_component(mask: sitk.Image) -> sitk.Image:
     cc = sitk.ConnectedComponent(mask, True)
     relabelled = sitk.RelabelComponent(cc, sortByObjectSize=True)
@@ -81,7 +94,7 @@ def cranium_mask_from_cta(volume: Volume, *, bone_hu: float = C.HU_BONE_MIN) -> 
     if not np.any(volume.array > bone_hu):
         raise InputError(f"no voxel above {bone_hu:g} HU: the CTA shows no bone, so no cranium mask can be derived; supply a mask")
     full = sitk_from_volume(volume)
-    factors = [max(1, round(WORK_SPACING_MM / s)) for s in volume.spacing_mm]
+    factors = _work_factors(volume, WORK_SPACING_MM)
     work = sitk.BinShrink(full, factors) if max(factors) > 1 else full
     spacing = work.GetSpacing()
     bone = sitk.Cast(work > bone_hu, sitk.sitkUInt8)
@@ -92,11 +105,7 @@ def cranium_mask_from_cta(volume: Volume, *, bone_hu: float = C.HU_BONE_MIN) -> 
     line = [0, 0, 0]
     line[2 - axis] = _radius_vox(CLOSING_RADIUS_MM, spacing)[2 - axis]
     bridged = sitk.BinaryMorphologicalClosing(filled, line, sitk.sitkBox)
-    mask = _largest_component(sitk.BinaryFillhole(bridged, fullyConnected=False))
-    mask.CopyInformation(work)
-    if work is not full:
-        mask = sitk.Resample(mask, full, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
-    out = sitk.GetArrayFromImage(mask).astype(np.uint8)
+    out = _back_to_full(_largest_component(sitk.BinaryFillhole(bridged, fullyConnected=False)), work, full)
     return volume.like(out, kind="cranium_mask", method="bone threshold + closing + largest component + axial fill")
 
 
@@ -114,16 +123,14 @@ def vessel_mask_from_cta(volume: Volume, cranium: Volume) -> Volume:
     if cranium.array.shape != volume.array.shape:
         raise InputError(f"cranium mask shape {cranium.array.shape} does not match the CTA grid {volume.array.shape}")
     method = "approximate: contrast HU range away from bone inside the cranium"
-    factors = [max(1, round(VESSEL_WORK_SPACING_MM / s)) for s in volume.spacing_mm]
+    factors = _work_factors(volume, VESSEL_WORK_SPACING_MM)
     if max(factors) == 1:
         return volume.like(_vessel_mask(volume.array, cranium.array > 0, volume.spacing_mm), kind="vessel_mask", method=method)
     full = sitk_from_volume(volume)
     work = sitk.BinShrink(sitk.Cast(full, sitk.sitkFloat32), factors)
     work_cranium = sitk.BinShrink(sitk.Cast(sitk_from_volume(cranium) > 0, sitk.sitkFloat32), factors) > 0.5
-    small = sitk.GetImageFromArray(_vessel_mask(sitk.GetArrayFromImage(work), sitk.GetArrayFromImage(work_cranium) > 0,
-                                                work.GetSpacing()))
-    small.CopyInformation(work)
-    out = sitk.GetArrayFromImage(sitk.Resample(small, full, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8))
+    small = _vessel_mask(sitk.GetArrayFromImage(work), sitk.GetArrayFromImage(work_cranium) > 0, work.GetSpacing())
+    out = _back_to_full(sitk.GetImageFromArray(small), work, full)
     return volume.like(out, kind="vessel_mask", method=f"{method}, on a {VESSEL_WORK_SPACING_MM:g} mm working grid")
 
 
