@@ -9,6 +9,7 @@ its own seed (``seed + rank``); rank 0 writes logs, checkpoints and the model.
 from __future__ import annotations
 
 import csv
+import gc
 import math
 import os
 import sys
@@ -104,11 +105,7 @@ class TrainConfig:
 
 
 def _distributed() -> tuple[int, int]:
-    """(rank, world size), initialising the process group when launched by torchrun."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world > 1 and not dist.is_initialized():
-        backend = "nccl" if torch.cuda.is_available() else "gloo"
-        dist.init_process_group(backend)
+    """(rank, world size) of the process group (0, 1 without one)."""
     if dist.is_initialized():
         return dist.get_rank(), dist.get_world_size()
     return 0, 1
@@ -227,8 +224,33 @@ def train(
 
     ``subjects`` are moved to ``device`` (default: CUDA of this rank if available).
     ``max_seconds`` stops early (after a checkpoint) when the wall-clock budget is spent;
-    the model file then records the steps actually run.
+    the model file then records the steps actually run. Launched by torchrun (``WORLD_SIZE``
+    > 1) without a process group, it creates one and destroys it after a successful run.
     """
+    owns_group = int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized()
+    if owns_group:
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    path = _train(config, subjects, out_dir, device=device, data_recipe=data_recipe, max_seconds=max_seconds,
+                  progress=progress)
+    if owns_group:
+        # The DDP wrapper's reducer holds the group; collect it first, so that no backend thread
+        # outlives the group into interpreter shutdown (an abort at exit otherwise).
+        gc.collect()
+        dist.destroy_process_group()
+    return path
+
+
+def _train(
+    config: TrainConfig,
+    subjects: list[TrainingSubject],
+    out_dir: str | os.PathLike,
+    *,
+    device: str | torch.device | None,
+    data_recipe: dict | None,
+    max_seconds: float | None,
+    progress: bool,
+) -> Path:
+    """:func:`train`'s body, inside the process group when there is one."""
     rank, world = _distributed()
     if device is None:
         device = torch.device(f"cuda:{rank % torch.cuda.device_count()}") if torch.cuda.is_available() else torch.device("cpu")
