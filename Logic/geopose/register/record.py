@@ -19,11 +19,12 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
-#: 3: ``engine`` (backend, renderer, device, render sizes, CTA levels), ``notes``, the options of
+#: 4: ``tto_axis_searches`` (the TTO's turns about the biplane common axis: iteration, turns in
+#: deg, losses, the turn chosen). 3: ``engine`` (backend, renderer, device, render sizes, CTA levels), ``notes``, the options of
 #: ``geopose.options``; ``carm`` angles keep DICOM's signs and views name their pixel axes
 #: (``patient_orientation``, docs/conventions.md section 7). 2: ``view_logits`` are
 #: mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -183,6 +184,7 @@ def build_record(
             {"iteration": e["iteration"], "loss": e["loss"], "views": {k: {"mncc": d["mncc"], "dice_loss": d["dice_loss"]} for k, d in e["views"].items()}}
             for e in case.tto.trace
         ]
+        record["tto_axis_searches"] = case.tto.axis_searches
     if truth_metrics:
         for key, metrics in truth_metrics.items():
             record["views"][key]["truth"] = metrics

@@ -44,12 +44,13 @@ __all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "test_time_o
 #: The render channels the objective uses: the total density, the cranium and the vessels.
 TTO_CHANNELS = ("total", "cranium", "vessels")
 #: Weight (per rad^2) of a prior holding a patient pose's rotation about the axis both image
-#: planes contain (:func:`.biplane.common_axis`) near its start: that rotation is out of plane
-#: in both views and nearly unobservable, and without the prior NAdam's normalised steps wander
-#: along it (1 deg costs 0.003, a tenth of what a 1-px misalignment of the vessels does). The
-#: other two rotations are in-plane in one view and free: a prior on all three held the start's
-#: rotation error (docs/benchmark/bench.md, reading: 3.05 -> 1.93 mm mean mPCD with the change and
-#: the second TTO start).
+#: planes contain (:func:`.biplane.common_axis`) near its start (or where the last common-axis
+#: search put it): that rotation is out of plane in both views, its gradient is weak, and
+#: without the prior NAdam's normalised steps wander along it. The other two rotations are
+#: in-plane in one view and free: a prior on all three held the start's rotation error
+#: (docs/benchmark/bench.md, reading). The prior also holds the start's error about the common
+#: axis, which the objective does see over a few degrees; the common-axis search
+#: (:class:`TTOSchedule`) corrects it (docs/tto_schedule.md).
 ROTATION_PRIOR_PER_RAD2 = 10.0
 
 
@@ -71,32 +72,47 @@ class TTOView:
 class TTOSchedule:
     """Steps, the share of them at half size, and the peak learning rates (OneCycle): for a
     patient pose, of its rotation (rad) and isocentre shift (mm); ``paper``: the published
-    per-view schedule instead (max 1e-2 on Euler angles and translation / 200)."""
+    per-view schedule instead (max 1e-2 on Euler angles and translation / 200).
+
+    ``axis_search_at``: fractions of the steps after which a patient pose is turned about the
+    common axis (the rotation both views see worst, which the prior holds) to the objective's
+    best along it: turns of ``-step, 0, +step`` (deg) scored at full size, the vertex of the
+    parabola through them (within twice the step) scored too, the best kept (docs/tto_schedule.md).
+    """
 
     iterations: int = C.TTO_ITERATIONS
     coarse_fraction: float = 0.6
     rotation_lr_rad: float = 0.02
     translation_lr_mm: float = 4.0
     paper: bool = False
+    axis_search_at: tuple[float, ...] = (0.6, 0.8)
+    axis_search_step_deg: float = 4.0
 
     def coarse_steps(self) -> int:
         return int(round(self.iterations * self.coarse_fraction))
 
+    def axis_search_iterations(self) -> set[int]:
+        """The steps (strictly inside the run) before which the common-axis search runs."""
+        steps = {int(round(self.iterations * f)) for f in self.axis_search_at}
+        return {i for i in steps if 0 < i < self.iterations}
+
 
 #: The paper's schedule, all steps at full size (independent views).
-PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True)
+PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True, axis_search_at=())
 
 
 @dataclass
 class TTOResult:
     """Best pose per view, its mNCC and iteration; the patient pose when one was optimised;
-    ``trace``: per iteration the loss, the image size and per view the mNCC, Dice loss and pose."""
+    ``trace``: per iteration the loss, the image size and per view the mNCC, Dice loss and pose;
+    ``axis_searches``: per common-axis search its iteration, turns (deg), losses and choice."""
 
     poses: dict[str, np.ndarray]
     best_mncc: dict[str, float]
     best_iteration: dict[str, int]
     patient_pose: np.ndarray | None = None
     trace: list[dict] = field(default_factory=list)
+    axis_searches: list[dict] = field(default_factory=list)
 
 
 def biplanar_penalty(R_pa, R_lat):
@@ -171,13 +187,23 @@ class _PatientParams:
         self.rig = {k: torch.as_tensor(A, dtype=torch.float64, device=device) for k, A in rig.items()}
         self.w = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
         self.v = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
+        self.w_ref = torch.zeros(3, dtype=torch.float64, device=device)
         axis = common_axis({k: X0 for k in rig}, rig)
         self.prior_axis = None if axis is None else torch.as_tensor(axis, dtype=torch.float64, device=device)
 
     def rotation_prior(self):
-        """``ROTATION_PRIOR_PER_RAD2 * (w . common axis)^2`` (all of ``|w|^2`` without a common axis)."""
-        w2 = (self.w ** 2).sum() if self.prior_axis is None else (self.w @ self.prior_axis) ** 2
+        """``ROTATION_PRIOR_PER_RAD2 * ((w - w_ref) . common axis)^2`` (all of ``|w - w_ref|^2`` without
+        a common axis); ``w_ref`` is 0, or where the last common-axis search moved ``w``."""
+        d = self.w - self.w_ref
+        w2 = (d ** 2).sum() if self.prior_axis is None else (d @ self.prior_axis) ** 2
         return ROTATION_PRIOR_PER_RAD2 * w2
+
+    def turned(self, angle_rad: float):
+        """``w`` after a further turn of ``angle_rad`` about the common axis (through the isocentre)."""
+        from ..geometry.rigid import axis_angle_to_matrix, matrix_to_axis_angle
+
+        R = axis_angle_to_matrix(self.prior_axis * angle_rad) @ axis_angle_to_matrix(self.w.detach())
+        return matrix_to_axis_angle(R)
 
     def groups(self, schedule: TTOSchedule) -> list[dict]:
         return [{"params": [self.w], "lr": schedule.rotation_lr_rad}, {"params": [self.v], "lr": schedule.translation_lr_mm}]
@@ -293,9 +319,36 @@ def test_time_optimise(
             optimiser, max_lr=[g["lr"] for g in groups], total_steps=n, pct_start=C.TTO_WARMUP_FRACTION,
             div_factor=C.TTO_DIV_FACTOR, cycle_momentum=False,
         )
+    def axis_search(it: int) -> None:
+        """Turn the patient about the common axis to the objective's best (``TTOSchedule``), the
+        other parameters held, and centre the rotation prior there."""
+        step = schedule.axis_search_step_deg
+        w0 = params.w.detach().clone()
+
+        def score(deg: float) -> float:
+            params.w.copy_(params.turned(math.radians(deg)))
+            _, losses, _ = evaluate("full")
+            params.w.copy_(w0)
+            return sum(v[0] for v in losses.values())
+
+        with torch.no_grad():
+            turns = [-step, 0.0, step]
+            scores = [score(d) for d in turns]
+            curvature = scores[0] + scores[2] - 2 * scores[1]
+            if curvature > 0:
+                turns.append(float(np.clip(step * (scores[0] - scores[2]) / (2 * curvature), -2 * step, 2 * step)))
+                scores.append(score(turns[-1]))
+            chosen = turns[int(np.argmin(scores))]
+            params.w.copy_(params.turned(math.radians(chosen)))
+            params.w_ref.copy_(params.w.detach())
+        result.axis_searches.append({"iteration": it, "turn_deg": turns, "loss": scores, "chosen_deg": chosen})
+
+    searches = schedule.axis_search_iterations() if joint and params.prior_axis is not None else set()
     for it in range(n + 1):
         final = it == n
         size = "half" if it < coarse else "full"
+        if it in searches:
+            axis_search(it)
         monitor.step("tto", it / max(n, 1), f"iteration {it}/{n} ({size} size)")
         with torch.set_grad_enabled(not final):
             total, losses, poses = evaluate(size)
