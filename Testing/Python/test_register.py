@@ -175,15 +175,20 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
     assert red.sum() > 100  # the projected vessels
 
 
-def _consistent_views(case: Path, starts: dict[str, np.ndarray]):
-    """(renderer, runs, truth, views): TTO views whose targets are the DRR at the true pose, clipped
-    like a MAP (so the objective's optimum is the truth), started at ``starts``."""
+def _prepared(case: Path):
+    """(truth, runs, prepared case, torch renderer) of the phantom case, its vessels segmented."""
     truth = load_truth(case / "cta.nii.gz")
     cta = load_cta(case / "cta.nii.gz")
     labels = load_cta(case / "labels.nii.gz", check_hu=False)
     runs = {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
     prep = prepare_case(cta, runs, segmentation=labels.like((labels.array >= 2).astype(np.uint8)), tto_px=128)
-    renderer = TorchRenderer(prep.volume)
+    return truth, runs, prep, TorchRenderer(prep.volume)
+
+
+def _consistent_views(case: Path, starts: dict[str, np.ndarray]):
+    """(renderer, runs, truth, views): TTO views whose targets are the DRR at the true pose, clipped
+    like a MAP (so the objective's optimum is the truth), started at ``starts``."""
+    truth, runs, prep, renderer = _prepared(case)
     views = []
     for key in ("pa", "lat"):
         p = prep.views[key]
@@ -218,12 +223,7 @@ def test_common_axis_search_turns_the_patient_back(phantom_case):
     contain (out of plane in both views): the rotation prior holds most of that turn without the
     common-axis search (3 deg are left), and the search (two parabola steps of the default
     schedule) brings it back to <= 2 deg."""
-    truth = load_truth(phantom_case / "cta.nii.gz")
-    cta = load_cta(phantom_case / "cta.nii.gz")
-    labels = load_cta(phantom_case / "labels.nii.gz", check_hu=False)
-    runs = {k: read_dsa(phantom_case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
-    prep = prepare_case(cta, runs, segmentation=labels.like((labels.array >= 2).astype(np.uint8)))
-    renderer = TorchRenderer(prep.volume)
+    truth, runs, prep, renderer = _prepared(phantom_case)
     rig = nominal_poses(runs)
     X_true = truth.poses["pa"] @ invert(rig["pa"])
     axis = common_axis({k: X_true for k in rig}, rig)
@@ -384,13 +384,7 @@ def test_tto_started_at_the_truth_stays_near_it(phantom_case):
     """The default objective's optimum on a simulated DSA pair lies near the truth: one patient pose,
     25 steps from the true pose, ends within TTO_DRIFT_BOUND_MM per view; the paper's objective, per
     view, drifts further on the same case."""
-    case = phantom_case
-    truth = load_truth(case / "cta.nii.gz")
-    cta = load_cta(case / "cta.nii.gz")
-    labels = load_cta(case / "labels.nii.gz", check_hu=False)
-    runs = {k: read_dsa(case / f"dsa_{k}.dcm") for k in ("pa", "lat")}
-    prep = prepare_case(cta, runs, segmentation=labels.like((labels.array >= 2).astype(np.uint8)))
-    renderer = TorchRenderer(prep.volume)
+    truth, runs, prep, renderer = _prepared(phantom_case)
 
     def drift(poses: dict) -> dict[str, float]:
         return {k: evaluate_pose(poses[k], truth.poses[k], runs[k].detector, runs[k].angles.sod_mm,
