@@ -56,11 +56,16 @@ terms (mNCC of the clipped images, Dice of the masks) pull the pose 1-3 mm to cl
 The opacified vessels are different: they are sharp, high-contrast structures that sit exactly
 where the CTA's vessels project, so their term (NCC of the MAP's vessel image, from the temporal
 mean, against the DRR's vessel channel) has its optimum at the truth in-plane. With it, one
-patient pose for both views drifts about a third as far; its weight matters little between
+patient pose for both views drifts less than half as far; its weight matters little between
 0.5 and 0.9, and 0.75 is the default. What is left is mostly along the lateral view: the DRR's
 vessel channel holds every vessel of the CTA, while the MAP shows the injected ones, so the
 non-opacified side adds a small bias. Registering the views one by one (paper schedule) with the
 same objective drifts further than one patient pose: each view's depth is free to wander.
+The one-patient-pose rows run the TTO's common-axis search (docs/tto_schedule.md): it finds the
+objective's own minimum along the turn both views see worst, which the rotation prior had held
+at the start. Without it (this table before 2026-12-02) these rows drifted less from the truth
+(0.65 mm mean at weight 0.75, 1.40 with the silhouettes only) and further from the perturbed
+start (1.07 mm): the search trades a few tenths of a millimetre at the truth for reach.
 
 Tried and not kept (2026-12-02): fitting the vessels on the patient's left and right with separate
 non-negative weights (the multiple correlation of the MAP's vessel image with both, so a
