@@ -199,7 +199,8 @@ class _PatientParams:
         return ROTATION_PRIOR_PER_RAD2 * w2
 
     def turned(self, angle_rad: float):
-        """``w`` after a further turn of ``angle_rad`` about the common axis (through the isocentre)."""
+        """``w`` (rad, a new tensor) after a further turn of ``angle_rad`` about the common axis
+        (through the isocentre)."""
         from ..geometry.rigid import axis_angle_to_matrix, matrix_to_axis_angle
 
         R = axis_angle_to_matrix(self.prior_axis * angle_rad) @ axis_angle_to_matrix(self.w.detach())
@@ -319,6 +320,7 @@ def test_time_optimise(
             optimiser, max_lr=[g["lr"] for g in groups], total_steps=n, pct_start=C.TTO_WARMUP_FRACTION,
             div_factor=C.TTO_DIV_FACTOR, cycle_momentum=False,
         )
+
     def axis_search(it: int) -> None:
         """Turn the patient about the common axis to the objective's best (``TTOSchedule``), the
         other parameters held, and centre the rotation prior there."""
