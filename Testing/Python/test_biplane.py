@@ -21,6 +21,7 @@ from geopose.register.biplane import (
     common_axis,
     fuse_patient_poses,
     patient_pose,
+    turned_about,
     view_poses,
 )
 from geopose.register.refine import greedy_refine_biplane
@@ -115,6 +116,9 @@ def test_common_axis_is_normal_to_both_rays_and_only_it_is_held_by_the_tto_prior
     assert abs(axis @ _ray("pa", X)) < 1e-9 and abs(axis @ _ray("lat", X)) < 1e-9
     assert abs(axis @ (X[:3, :3] @ [0.0, 0.0, 1.0])) > 0.99  # the patient's superior axis (rig 2-4 deg oblique)
     assert common_axis({"pa": X}, RIG) is None
+    turned = turned_about(X, axis, np.radians(5.0))  # about the axis through the isocentre: the axis stays
+    assert np.allclose(turned[:3, 3], X[:3, 3]) and np.allclose(common_axis({"pa": turned, "lat": turned}, RIG), axis)
+    assert np.degrees(np.arccos((np.trace(turned[:3, :3] @ X[:3, :3].T) - 1) / 2)) == pytest.approx(5.0)
 
     params = _PatientParams(X, RIG, "cpu")
     with torch.no_grad():

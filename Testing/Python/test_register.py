@@ -20,7 +20,7 @@ from geopose import contract as C
 from geopose.cta import load_cta
 from geopose.dsa import read_dsa
 from geopose.geometry import invert, isopose, pose_from_params
-from geopose.geometry.poses import axis_angle_to_matrix, matrix_to_axis_angle
+from geopose.geometry.poses import matrix_to_axis_angle
 from geopose.metrics import mncc
 from geopose.nets import ModelSet
 from geopose.options import RegistrationOptions
@@ -40,7 +40,7 @@ from geopose.register import (
     render_model_view,
     test_time_optimise as run_tto,
 )
-from geopose.register.biplane import common_axis, nominal_poses
+from geopose.register.biplane import common_axis, nominal_poses, turned_about
 from geopose.register.evaluate import evaluate_pose, load_truth, truth_metrics
 from geopose.register.objective import PAPER_OBJECTIVE, Objective, clip_like_target, objective_value
 from geopose.register.pipeline import tto_views
@@ -185,24 +185,16 @@ def _prepared(case: Path):
     return truth, runs, prep, TorchRenderer(prep.volume)
 
 
-def _consistent_views(case: Path, starts: dict[str, np.ndarray]):
-    """(renderer, runs, truth, views): TTO views whose targets are the DRR at the true pose, clipped
-    like a MAP (so the objective's optimum is the truth), started at ``starts``."""
-    truth, runs, prep, renderer = _prepared(case)
+def test_tto_reaches_one_mm_on_a_consistent_target(phantom_case):
+    """TTO from the true pose perturbed by ~4.7 deg / 9.8 mm, against targets rendered
+    at the true pose (so the objective's optimum is the truth), reaches <= 1 mm mPCD."""
+    truth, runs, prep, renderer = _prepared(phantom_case)
     views = []
     for key in ("pa", "lat"):
         p = prep.views[key]
         total, vessels = renderer.render(truth.poses[key], p.tto_detector, ("total", "vessels"))
         target = clip_like_target(total, p.tto_mask > 0, C.MAP_CLIP_PERCENTILES)
-        views.append(TTOView(key, target, p.tto_mask, vessels, p.tto_detector, starts[key]))
-    return renderer, runs, truth, views
-
-
-def test_tto_reaches_one_mm_on_a_consistent_target(phantom_case):
-    """TTO from the true pose perturbed by ~4.7 deg / 9.8 mm, against targets rendered
-    at the true pose (so the objective's optimum is the truth), reaches <= 1 mm mPCD."""
-    truth = load_truth(phantom_case / "cta.nii.gz")
-    renderer, runs, truth, views = _consistent_views(phantom_case, {k: _perturb(T) for k, T in truth.poses.items()})
+        views.append(TTOView(key, target, p.tto_mask, vessels, p.tto_detector, _perturb(truth.poses[key])))
     # The silhouette and vessel terms (the Dice term compares the CTA's cranium with the DSA's head mask).
     result = run_tto(renderer, views, TTOSchedule(C.TTO_ITERATIONS), objective=Objective(ncc_weight=1.0),
                      rig=nominal_poses(runs))
@@ -226,9 +218,7 @@ def test_common_axis_search_turns_the_patient_back(phantom_case):
     truth, runs, prep, renderer = _prepared(phantom_case)
     rig = nominal_poses(runs)
     X_true = truth.poses["pa"] @ invert(rig["pa"])
-    axis = common_axis({k: X_true for k in rig}, rig)
-    X = X_true.copy()
-    X[:3, :3] = axis_angle_to_matrix(axis * np.radians(8.0)) @ X_true[:3, :3]
+    X = turned_about(X_true, common_axis({k: X_true for k in rig}, rig), np.radians(8.0))
     views = tto_views(prep.views, {k: X @ A for k, A in rig.items()})
 
     def turn_deg(result) -> float:

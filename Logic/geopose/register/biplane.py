@@ -22,7 +22,7 @@ from ..geometry.detector import AP_REORIENT
 from ..geometry.poses import axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles
 
 __all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "common_axis",
-           "axis_disagreement_mm"]
+           "turned_about", "axis_disagreement_mm"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +95,14 @@ def common_axis(poses: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarra
     common = np.cross(_camera_axes(np.asarray(Xa), nominal[ka])[:, 2], _camera_axes(np.asarray(Xb), nominal[kb])[:, 2])
     norm = np.linalg.norm(common)
     return None if norm < 1e-6 else common / norm
+
+
+def turned_about(X: np.ndarray, axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """The patient pose ``X`` ``(4, 4)`` turned by ``angle_rad`` about the unit ``axis`` (CTA frame)
+    through the isocentre (``X[:3, 3]`` stays)."""
+    out = np.array(X, dtype=np.float64)
+    out[:3, :3] = axis_angle_to_matrix(np.asarray(axis, dtype=np.float64) * angle_rad) @ out[:3, :3]
+    return out
 
 
 def axis_disagreement_mm(estimates: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray]) -> float:

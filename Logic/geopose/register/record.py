@@ -20,10 +20,10 @@ from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
 #: 4: ``tto_axis_searches`` (the TTO's turns about the biplane common axis: iteration, turns in
-#: deg, losses, the turn chosen). 3: ``engine`` (backend, renderer, device, render sizes, CTA levels), ``notes``, the options of
-#: ``geopose.options``; ``carm`` angles keep DICOM's signs and views name their pixel axes
-#: (``patient_orientation``, docs/conventions.md section 7). 2: ``view_logits`` are
-#: mirror-averaged; 1: single-image logits.
+#: deg, losses, the turn chosen). 3: ``engine`` (backend, renderer, device, render sizes, CTA
+#: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
+#: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
+#: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
 SCHEMA_VERSION = 4
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]

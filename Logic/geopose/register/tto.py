@@ -78,6 +78,7 @@ class TTOSchedule:
     common axis (the rotation both views see worst, which the prior holds) to the objective's
     best along it: turns of ``-step, 0, +step`` (deg) scored at full size, the vertex of the
     parabola through them (within twice the step) scored too, the best kept (docs/tto_schedule.md).
+    ``rotation_prior_per_rad2``: the weight of the prior on that turn (:data:`ROTATION_PRIOR_PER_RAD2`).
     """
 
     iterations: int = C.TTO_ITERATIONS
@@ -87,6 +88,7 @@ class TTOSchedule:
     paper: bool = False
     axis_search_at: tuple[float, ...] = (0.6, 0.8)
     axis_search_step_deg: float = 4.0
+    rotation_prior_per_rad2: float = ROTATION_PRIOR_PER_RAD2
 
     def coarse_steps(self) -> int:
         return int(round(self.iterations * self.coarse_fraction))
@@ -180,7 +182,8 @@ class _PatientParams:
     """``T_v = X @ A_v`` with ``X = [[R(w) R0, p0 + v], [0, 1]]``: ``w`` (rad, axis-angle about the
     isocentre, CTA frame) and ``v`` (mm, isocentre shift)."""
 
-    def __init__(self, X0: np.ndarray, rig: Mapping[str, np.ndarray], device) -> None:
+    def __init__(self, X0: np.ndarray, rig: Mapping[str, np.ndarray], device,
+                 prior_per_rad2: float = ROTATION_PRIOR_PER_RAD2) -> None:
         import torch
 
         self.X0 = torch.as_tensor(X0, dtype=torch.float64, device=device)
@@ -188,15 +191,16 @@ class _PatientParams:
         self.w = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
         self.v = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
         self.w_ref = torch.zeros(3, dtype=torch.float64, device=device)
+        self.prior_per_rad2 = prior_per_rad2
         axis = common_axis({k: X0 for k in rig}, rig)
         self.prior_axis = None if axis is None else torch.as_tensor(axis, dtype=torch.float64, device=device)
 
     def rotation_prior(self):
-        """``ROTATION_PRIOR_PER_RAD2 * ((w - w_ref) . common axis)^2`` (all of ``|w - w_ref|^2`` without
-        a common axis); ``w_ref`` is 0, or where the last common-axis search moved ``w``."""
+        """``prior_per_rad2 * ((w - w_ref) . common axis)^2`` (all of ``|w - w_ref|^2`` without a
+        common axis); ``w_ref`` is 0, or where the last common-axis search moved ``w``."""
         d = self.w - self.w_ref
         w2 = (d ** 2).sum() if self.prior_axis is None else (d @ self.prior_axis) ** 2
-        return ROTATION_PRIOR_PER_RAD2 * w2
+        return self.prior_per_rad2 * w2
 
     def turned(self, angle_rad: float):
         """``w`` (rad, a new tensor) after a further turn of ``angle_rad`` about the common axis
@@ -269,7 +273,7 @@ def test_time_optimise(
     joint = rig is not None
     if joint:
         X0 = patient_pose(views[0].pose, rig[views[0].name])
-        params = _PatientParams(X0, {v.name: rig[v.name] for v in views}, dev)
+        params = _PatientParams(X0, {v.name: rig[v.name] for v in views}, dev, schedule.rotation_prior_per_rad2)
     else:
         params = _ViewParams(views, dev)
     names = [v.name for v in views]
