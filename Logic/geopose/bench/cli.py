@@ -21,7 +21,7 @@ from ..register.pipeline import resolve_engine
 from ..resources import default_models_dir
 from .cases import ge_head_case, headsq_case, phantom_case, training_seeds
 from .report import convergence_figure, markdown, summarise
-from .run import DRIFT_ROW, LEARNED_ROW, NATIVE_TTO_ROW, BenchSettings, evaluate_case, row_names
+from .run import DRIFT_ROW, INSTANT_ROW, LEARNED_ROW, NATIVE_TTO_ROW, BenchSettings, evaluate_case, row_names
 
 #: First held-out phantom seed (training populations use small seeds; checked at run time).
 DEFAULT_SEED_START = 5000
@@ -84,9 +84,9 @@ def run(args: argparse.Namespace) -> int:
             )
             cases.append(result)
             elapsed = time.perf_counter() - t_start
-            row = LEARNED_ROW.format(n=args.iterations)
+            row = LEARNED_ROW.format(n=args.iterations) if args.iterations > 0 else INSTANT_ROW
             mpcd = [result["rows"][row][v].get("mpcd_mm") for v in ("pa", "lat")]
-            print(f"[{i + 1}/{len(seeds)}] {tag}: biplane greedy + TTO mPCD PA {mpcd[0]:.2f} / LAT {mpcd[1]:.2f} mm; "
+            print(f"[{i + 1}/{len(seeds)}] {tag}: {row} mPCD PA {mpcd[0]:.2f} / LAT {mpcd[1]:.2f} mm; "
                   f"elapsed {elapsed / 60:.1f} min", flush=True)
         real = []
         for name, source, make in (("headsq", args.headsq, headsq_case), ("ge-head", args.ge_head, ge_head_case)):
