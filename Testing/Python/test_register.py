@@ -337,9 +337,9 @@ class SideSwappedInit(OracleInit):
 
 def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     """Init 20 deg / 60 mm off, reading the lateral on the wrong side: the DICOM-angle pose scores
-    best of the candidate starts, the TTO runs from it and from the best learned start, the result
-    comes from the DICOM angles' run and is no worse than that start by the same objective, and
-    the lateral view carries the side doubt."""
+    best of the candidate starts, the TTO runs from it and from the one distinct learned start, the
+    result comes from the DICOM angles' run and is no worse than that start by the same objective,
+    and the lateral view carries the side doubt."""
     case = phantom_case
     N, true, cta, runs = _read_phantom(case)
     far = {k: _perturb(true[k], (12.0, -10.0, 12.0), (40.0, -30.0, 30.0)) for k in true}
@@ -350,10 +350,12 @@ def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
         options=RegistrationOptions(backend="torch", device="cpu", tto_px=96, iterations=6),
     )
     registration = result.registration
-    assert set(registration.starts) == {"DICOM angles", "Init", "Refine"}
-    assert registration.starts["DICOM angles"] < min(registration.starts["Init"], registration.starts["Refine"])
-    learned = min(("Init", "Refine"), key=registration.starts.get)
-    assert set(registration.tto_runs) == set(registration.tto_objective) == {learned, "DICOM angles"}
+    assert set(registration.starts) == {"DICOM angles", "Init", "Init PA", "Init LAT", "Refine"}
+    assert registration.starts["DICOM angles"] < min(v for k, v in registration.starts.items() if k != "DICOM angles")
+    # Both views' Init imply one patient pose and Refine accepted nothing: one learned start, run once.
+    assert len({round(v, 4) for k, v in registration.starts.items() if k != "DICOM angles"}) == 1
+    assert set(registration.tto_runs) == set(registration.tto_objective) == {"DICOM angles", "Init"}
+    assert all(run.stopped_at is None and len(run.trace) == 7 for run in registration.tto_runs.values())
     assert registration.chosen_start == "DICOM angles" == min(registration.tto_objective, key=registration.tto_objective.get)
     assert result.tto is registration.tto_runs["DICOM angles"]
     final = sum(objective_value(result.renderer, result.views[k].final_pose, result.views[k].prepared).loss for k in runs)
@@ -362,6 +364,37 @@ def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     lat = result.views["lat"].quality
     assert lat.flag != "ok" and any("reads this view as" in d for d in lat.reasons), lat
     assert not any("reads this view as" in d for d in result.views["pa"].quality.reasons)
+
+
+def test_one_views_init_alone_is_a_start_when_the_other_view_is_far_off(phantom_case):
+    """PA's Init 2 deg / 3 mm off, the lateral's 70 mm off in its own plane: the fused Init inherits
+    the lateral's error, the PA Init alone does not; it wins the coarse steps of the TTO
+    tournament and the result, which lands within 2 mm (carotid mPCD) of the truth in both views."""
+    case = phantom_case
+    N, true, cta, runs = _read_phantom(case)
+    near_pa = _perturb(true["pa"], (1.0, -1.0, 1.0), (2.0, -1.0, 2.0))
+    far_lat = _perturb(true["lat"], (2.0, 0.0, 0.0), (0.0, 50.0, -50.0))
+    init = OracleInit([N @ isopose(C.VIEW_PA), N @ near_pa, N @ far_lat])
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    result = register_case(
+        cta, runs, models=oracle_models(init, OracleRefine([])), segmentation=labels.like((labels.array >= 2).astype(np.uint8)),
+        options=RegistrationOptions(backend="torch", device="cpu", tto_px=96),
+    )
+    registration = result.registration
+    assert registration.starts["Init PA"] < min(registration.starts["Init"], registration.starts["Init LAT"])
+    assert registration.chosen_start == "Init PA"
+    # The record names every start's ranking loss and where the ones not kept stopped.
+    record = build_record(result, runs)["registration"]
+    ranking = record["tto_ranking_loss"]
+    assert set(ranking) == set(registration.tto_runs) == {"DICOM angles", "Init", "Init PA", "Init LAT"}
+    assert ranking["Init PA"] == min(v for k, v in ranking.items() if k != "DICOM angles")
+    assert record["tto_stopped_at"] == {"Init": 16, "Init LAT": 16}
+    assert set(registration.tto_objective) == {"DICOM angles", "Init PA"}
+    points = load_truth(case / "cta.nii.gz").carotid_points_mm
+    for key in ("pa", "lat"):
+        run = runs[key]
+        error = evaluate_pose(result.views[key].final_pose, true[key], run.detector, run.angles.sod_mm, points)["mpcd_mm"]
+        assert error < 2.0, (key, error)
 
 
 #: Drift (mPCD, mm at the detector) a TTO started at the truth may reach on the phantom's simulated

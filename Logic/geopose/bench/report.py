@@ -132,8 +132,8 @@ def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int 
     lines += ["", f"View accuracy (the network's class against the acquisition's view, independent views): "
               f"{'-' if acc is None else f'{100 * acc:.1f} %'} of {summary['views']} views.", ""]
     if summary.get("starts"):
-        lines += ["Start the default registration's result came from (TTO from the better learned start and from "
-                  "the DICOM angles; the lower objective wins): "
+        lines += ["Start the default registration's result came from (every distinct start through the TTO's coarse "
+                  "steps, the DICOM angles and the best other to the end; the lower objective wins): "
                   + ", ".join(f"{k} {v}" for k, v in summary["starts"].items()) + " (subjects).", ""]
     if summary.get("quality"):
         lines += ["Quality flags of the default registration: "

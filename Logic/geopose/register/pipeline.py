@@ -15,9 +15,11 @@ Read top to bottom, :func:`register_case` is the whole method (paper section 2.3
 By default the two runs are one biplane acquisition: one patient pose ``X`` places both
 C-arms (``T_v = X @ A_v``, ``A_v`` from each run's DICOM geometry; ``biplane.py``). Init's
 per-view estimates are fused into ``X`` by what each view observes, Refine's proposals
-likewise, and the TTO optimises ``X`` against both views, from the better (by the objective,
-``objective.py``) of Init and Refine and from the DICOM-angle pose; the lower final objective
-wins, so the result is never worse, by the objective, than the acquisition's own geometry.
+likewise, and the TTO optimises ``X`` against both views from every distinct candidate start
+(the DICOM-angle pose, the fused Init, each view's Init alone, Refine) through its coarse
+steps, then from the DICOM angles and the best other start (by the objective, ``objective.py``)
+to the end; the lower final objective wins, so the result is never worse, by the objective,
+than the acquisition's own geometry.
 ``independent_views=True`` runs the published pipeline: each view on its own, the paper's
 objective and schedule.
 
@@ -54,7 +56,7 @@ from .progress import CancelCheck, Monitor, ProgressCallback
 from .quality import VIEW_DISAGREEMENT_MM, Quality, assess
 from .refine import greedy_refine, greedy_refine_biplane
 from .results import CaseRegistration, InitEstimate, Registration, ViewOutcome
-from .tto import PAPER_SCHEDULE, TTOResult, TTOSchedule, TTOView, test_time_optimise
+from .tto import PAPER_SCHEDULE, TTOResult, TTOSchedule, TTOView, test_time_optimise, test_time_optimise_starts
 
 __all__ = [
     "Engine", "NO_TORCH_TTO_NOTE", "resolve_engine", "register_case", "score_view", "torch_available", "torch_renderer_for",
@@ -182,6 +184,11 @@ def _pair_objective(renderer: Renderer, poses: Mapping[str, np.ndarray], case: P
     return sum(objective_value(renderer, poses[k], case.views[k]).loss for k in VIEW_KEYS)
 
 
+def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two poses ``(4, 4)`` are one start: rotations within 1e-4, positions within 0.01 mm."""
+    return bool(np.allclose(a[:3, :3], b[:3, :3], atol=1e-4) and np.allclose(a[:3, 3], b[:3, 3], atol=0.01))
+
+
 def stage_agreement(learned: np.ndarray, final: np.ndarray) -> tuple[float, float]:
     """How far the final camera pose ``(4, 4)`` moved from the learned one: the rotation (deg) and
     the shift (mm) of the CTA's centre in the camera frame (:func:`pose_error_components`; a
@@ -267,15 +274,19 @@ def register_case(
             refined = {key: greedy_refine(renderer, targets[key], init_poses[key], inits[key].view, model_set.refine,
                                           render_px, options.refine_steps, monitor) for key in VIEW_KEYS}
 
-    # 5. The candidate starts scored by the objective: the DICOM-angle pose, Init and Refine (one
-    #    patient pose). The TTO (needs PyTorch) runs from the best learned start and from the
-    #    DICOM angles; the lower final objective wins, so the result is never worse, by the
+    # 5. The candidate starts scored by the objective: the DICOM-angle pose, Init (fused), each
+    #    view's Init alone (a view's Init can be far off where the other's is right) and Refine
+    #    (one patient pose). The TTO (needs PyTorch) runs the distinct starts as a tournament:
+    #    all through the coarse steps, then the DICOM angles' run and the best other by the loss
+    #    there to the end; the lower final objective wins, so the result is never worse, by the
     #    objective, than the acquisition's own geometry optimised alike.
     finals = {key: refined[key].pose for key in VIEW_KEYS}
     tto_result: TTOResult | None = None
     with _timed(times, "tto", engine):
         if joint:
-            candidates = {"DICOM angles": np.eye(4), "Init": X_init, "Refine": patient_pose(refined["pa"].pose, rig["pa"])}
+            candidates = {"DICOM angles": np.eye(4), "Init": X_init,
+                          **{f"Init {key.upper()}": implied[key] for key in VIEW_KEYS},
+                          "Refine": patient_pose(refined["pa"].pose, rig["pa"])}
             registration.starts = {name: _pair_objective(renderer, view_poses(X, rig), case) for name, X in candidates.items()}
             registration.chosen_start = min(registration.starts, key=registration.starts.get)
             registration.patient_pose = candidates[registration.chosen_start]
@@ -284,12 +295,15 @@ def register_case(
             notes.append(NO_TORCH_TTO_NOTE)
             monitor.step("tto", 1.0, NO_TORCH_TTO_NOTE)
         elif options.iterations > 0 and joint:
-            learned = min(("Init", "Refine"), key=registration.starts.get)
-            for i, name in enumerate((learned, "DICOM angles")):
-                run = test_time_optimise(tto_renderer, tto_views(case.views, view_poses(candidates[name], rig)),
-                                         TTOSchedule(options.iterations), rig=rig, monitor=monitor.part(i, 2, f"from {name}"))
-                registration.tto_runs[name] = run
-                registration.tto_objective[name] = _pair_objective(renderer, run.poses, case)
+            distinct: dict[str, np.ndarray] = {}
+            for name, X in candidates.items():
+                if not any(_same_pose(X, Y) for Y in distinct.values()):
+                    distinct[name] = X
+            registration.tto_runs = test_time_optimise_starts(
+                tto_renderer, tto_views(case.views, view_poses(np.eye(4), rig)), distinct, rig,
+                TTOSchedule(options.iterations), keep=("DICOM angles",), monitor=monitor)
+            registration.tto_objective = {name: _pair_objective(renderer, run.poses, case)
+                                          for name, run in registration.tto_runs.items() if run.stopped_at is None}
             registration.chosen_start = min(registration.tto_objective, key=registration.tto_objective.get)
             tto_result = registration.tto_runs[registration.chosen_start]
             finals, registration.patient_pose = dict(tto_result.poses), tto_result.patient_pose

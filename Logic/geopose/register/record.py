@@ -19,12 +19,14 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 5: ``registration.tto_ranking_loss`` and ``tto_stopped_at`` (the TTO's tournament of starts: each
+#: start's full-size loss after the coarse steps; the iteration the ones not kept stopped at).
 #: 4: ``tto_axis_searches`` (the TTO's turns about the biplane common axis: iteration, turns in
 #: deg, losses, the turn chosen). 3: ``engine`` (backend, renderer, device, render sizes, CTA
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -162,10 +164,13 @@ def build_record(
             "mode_doc": "biplane-rigid: one patient pose X for both views, camera poses X @ A_v with A_v from each run's "
             "DICOM angles (nominal_pose_centred); independent views: each view on its own (the published pipeline)",
             "tto_start": case.registration.chosen_start,
-            "tto_start_doc": "the start the result came from: the TTO runs from the best learned start and from the "
-            "DICOM angles and keeps the lower objective (without a TTO: the best start)",
+            "tto_start_doc": "the start the result came from: every distinct start runs the TTO's coarse steps, the DICOM "
+            "angles' run and the best other by the full-size loss there run to the end, the lower objective wins "
+            "(without a TTO: the best start)",
             "start_objective": case.registration.starts,
             "tto_objective": case.registration.tto_objective,
+            "tto_ranking_loss": {k: r.ranking_loss for k, r in case.registration.tto_runs.items() if r.ranking_loss is not None},
+            "tto_stopped_at": {k: r.stopped_at for k, r in case.registration.tto_runs.items() if r.stopped_at is not None},
             "patient_pose_centred": None if case.registration.patient_pose is None else _m(case.registration.patient_pose),
             "nominal_pose_centred": {k: _m(A) for k, A in case.registration.rig.items()},
             "checks": case.registration.checks,

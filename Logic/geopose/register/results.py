@@ -96,9 +96,10 @@ class ViewOutcome:
 class Registration:
     """How the case was registered: ``mode`` ``biplane-rigid`` (one patient pose ``X``, the camera
     poses ``X @ A_v``; ``rig`` holds the ``A_v`` from the DICOM angles) or ``independent views``;
-    the candidate starts with their objective (``starts``), the TTO run from each start it was
-    run from (``tto_runs``) with its final objective (``tto_objective``), the start the result
-    came from (``chosen_start``); the consistency ``checks`` of the two views."""
+    the candidate starts with their objective (``starts``), the TTO run from each distinct start
+    (``tto_runs``; those not among the tournament's finalists stopped after the coarse steps) with
+    the finalists' final objective (``tto_objective``), the start the result came from
+    (``chosen_start``); the consistency ``checks`` of the two views."""
 
     mode: str
     rig: dict[str, np.ndarray] = field(default_factory=dict)

@@ -19,7 +19,9 @@ NAdam with a OneCycle schedule. Coarse to fine: the first ``coarse_fraction`` of
 render at half the image size (a coarser CTA level, a quarter of the rays), the rest at
 full size. The result is the pose of best full-size objective seen, the start included
 (per view for independent views, jointly for a patient pose; the paper's schedule keeps
-each view's best mNCC). Poses in and out are numpy
+each view's best mNCC). :func:`test_time_optimise_starts` runs one patient pose from several
+starts as a tournament: all through the coarse steps, the best few (by the full-size loss
+after them and the first common-axis search) on to the end. Poses in and out are numpy
 ``(4, 4)`` (centred CTA frame, mm); this is the one stage that needs PyTorch.
 """
 
@@ -27,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -35,11 +37,12 @@ from .. import contract as C
 from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
-from .biplane import common_axis, patient_pose
+from .biplane import common_axis, patient_pose, view_poses
 from .objective import Objective, combine
 from .progress import Monitor
 
-__all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "test_time_optimise", "biplanar_penalty"]
+__all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "test_time_optimise", "test_time_optimise_starts",
+           "biplanar_penalty"]
 
 #: The render channels the objective uses: the total density, the cranium and the vessels.
 TTO_CHANNELS = ("total", "cranium", "vessels")
@@ -79,6 +82,8 @@ class TTOSchedule:
     best along it: turns of ``-step, 0, +step`` (deg) scored at full size, the vertex of the
     parabola through them (within twice the step) scored too, the best kept (docs/tto_schedule.md).
     ``rotation_prior_per_rad2``: the weight of the prior on that turn (:data:`ROTATION_PRIOR_PER_RAD2`).
+    ``finalists``: with several starts (:func:`test_time_optimise_starts`), how many run on after
+    the coarse steps.
     """
 
     iterations: int = C.TTO_ITERATIONS
@@ -89,6 +94,7 @@ class TTOSchedule:
     axis_search_at: tuple[float, ...] = (0.6, 0.8)
     axis_search_step_deg: float = 4.0
     rotation_prior_per_rad2: float = ROTATION_PRIOR_PER_RAD2
+    finalists: int = 2
 
     def coarse_steps(self) -> int:
         return int(round(self.iterations * self.coarse_fraction))
@@ -107,7 +113,10 @@ PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True, axis_search_at=())
 class TTOResult:
     """Best pose per view, its mNCC and iteration; the patient pose when one was optimised;
     ``trace``: per iteration the loss, the image size and per view the mNCC, Dice loss and pose;
-    ``axis_searches``: per common-axis search its iteration, turns (deg), losses and choice."""
+    ``axis_searches``: per common-axis search its iteration, turns (deg), losses and choice;
+    ``stopped_at``: the iteration a start of :func:`test_time_optimise_starts` stopped at when it
+    was not among the finalists (None: it ran to the end); ``ranking_loss``: the full-size loss
+    at the first full-size iteration it was ranked by there (None without a ranking)."""
 
     poses: dict[str, np.ndarray]
     best_mncc: dict[str, float]
@@ -115,6 +124,8 @@ class TTOResult:
     patient_pose: np.ndarray | None = None
     trace: list[dict] = field(default_factory=list)
     axis_searches: list[dict] = field(default_factory=list)
+    stopped_at: int | None = None
+    ranking_loss: float | None = None
 
 
 def biplanar_penalty(R_pa, R_lat):
@@ -229,16 +240,16 @@ class _PatientParams:
 class _ViewParams:
     """Per view, the paper's parameters: Euler ZYX (rad) and rotated-frame translation / 200 (mm)."""
 
-    def __init__(self, views: list[TTOView], device) -> None:
+    def __init__(self, poses: Mapping[str, np.ndarray], device) -> None:
         import torch
 
         from ..geometry.rigid import params_from_pose
 
         self.scale = C.TTO_TRANSLATION_SCALE_MM
         self.params = {}
-        for v in views:
-            r, t = params_from_pose(torch.as_tensor(v.pose, dtype=torch.float64, device=device)[None])
-            self.params[v.name] = torch.cat((r, t / self.scale), dim=-1).clone().requires_grad_(True)
+        for name, pose in poses.items():
+            r, t = params_from_pose(torch.as_tensor(pose, dtype=torch.float64, device=device)[None])
+            self.params[name] = torch.cat((r, t / self.scale), dim=-1).clone().requires_grad_(True)
 
     def groups(self, schedule: TTOSchedule) -> list[dict]:
         return [{"params": list(self.params.values()), "lr": C.TTO_MAX_LR}]
@@ -247,6 +258,142 @@ class _ViewParams:
         from ..geometry.rigid import pose_from_params
 
         return {k: pose_from_params(p[:, :3], p[:, 3:] * self.scale) for k, p in self.params.items()}
+
+
+class _Run:
+    """One optimisation from one start over shared :class:`_Images`: its parameters, NAdam with
+    the OneCycle schedule, the best pose seen and the trace; :meth:`advance` runs it on in pieces."""
+
+    def __init__(self, images: _Images, poses: Mapping[str, np.ndarray], schedule: TTOSchedule,
+                 rig: Mapping[str, np.ndarray] | None, biplanar: bool, device) -> None:
+        import torch
+
+        self.images, self.schedule, self.rig, self.biplanar, self.device = images, schedule, rig, biplanar, device
+        self.names = list(poses)
+        self.n = schedule.iterations
+        if self.n < 0:
+            raise ValueError(f"iterations must be >= 0, got {self.n}")
+        self.joint = rig is not None
+        if self.joint:
+            X0 = patient_pose(poses[self.names[0]], rig[self.names[0]])
+            self.params = _PatientParams(X0, {k: rig[k] for k in self.names}, device, schedule.rotation_prior_per_rad2)
+        else:
+            self.params = _ViewParams(poses, device)
+        self.coarse = schedule.coarse_steps() if self.n > 0 else 0
+        self.searches = (schedule.axis_search_iterations() if self.joint and self.params.prior_axis is not None
+                         else set())
+        # best[...] = (objective loss, per-view mNCC, per-view pose, iteration); one entry for a patient pose
+        self.best: dict = {}
+        self.result = TTOResult({}, {}, {})
+        self.it = 0
+        if self.coarse > 0:  # the start, scored at full size (the coarse steps are not compared with it)
+            with torch.no_grad():
+                _, losses, current = self._evaluate("full")
+            self._record_best(losses, current, 0)
+        self.optimiser = self.scheduler = None
+        if self.n > 0:
+            groups = self.params.groups(schedule)
+            self.optimiser = torch.optim.NAdam(groups, lr=groups[0]["lr"])
+            self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
+                self.optimiser, max_lr=[g["lr"] for g in groups], total_steps=self.n, pct_start=C.TTO_WARMUP_FRACTION,
+                div_factor=C.TTO_DIV_FACTOR, cycle_momentum=False,
+            )
+
+    def _evaluate(self, size: str) -> tuple:
+        import torch
+
+        poses = self.params.poses()
+        losses = {}
+        rotations = {}
+        total = torch.zeros((), dtype=torch.float64, device=self.device)
+        for name in self.names:
+            view_loss, sim, dice, vessel = self.images.loss(name, poses[name], size)
+            losses[name] = (float(view_loss.detach()), float(sim.detach()), float(dice.detach()),
+                            None if vessel is None else float(vessel.detach()))
+            total = total + view_loss
+            rotations[name] = poses[name][:, :3, :3]
+        if self.biplanar and len(self.names) == 2:
+            total = total + C.BIPLANAR_WEIGHT * biplanar_penalty(rotations[self.names[0]], rotations[self.names[1]]).sum()
+        if self.joint:
+            total = total + self.params.rotation_prior()
+        return total, losses, {k: p.detach()[0].cpu().numpy() for k, p in poses.items()}
+
+    def _consider(self, key: str, loss: float, scores: dict, poses: dict, it: int) -> None:
+        if key not in self.best or loss < self.best[key][0]:
+            self.best[key] = (loss, scores, poses, it)
+
+    def _record_best(self, losses: dict, poses: dict, it: int) -> None:
+        if self.joint:
+            prior = float(self.params.rotation_prior().detach())
+            self._consider("patient", sum(v[0] for v in losses.values()) + prior, {k: v[1] for k, v in losses.items()},
+                           poses, it)
+        else:  # per view; the paper keeps the pose of best mNCC
+            for name in self.names:
+                key = -losses[name][1] if self.schedule.paper else losses[name][0]
+                self._consider(name, key, {name: losses[name][1]}, {name: poses[name]}, it)
+
+    def _axis_search(self, it: int) -> None:
+        """Turn the patient about the common axis to the objective's best (``TTOSchedule``), the
+        other parameters held, and centre the rotation prior there."""
+        import torch
+
+        params, step = self.params, self.schedule.axis_search_step_deg
+        w0 = params.w.detach().clone()
+
+        def score(deg: float) -> float:
+            params.w.copy_(params.turned(math.radians(deg)))
+            _, losses, _ = self._evaluate("full")
+            params.w.copy_(w0)
+            return sum(v[0] for v in losses.values())
+
+        with torch.no_grad():
+            turns = [-step, 0.0, step]
+            scores = [score(d) for d in turns]
+            curvature = scores[0] + scores[2] - 2 * scores[1]
+            if curvature > 0:
+                turns.append(float(np.clip(step * (scores[0] - scores[2]) / (2 * curvature), -2 * step, 2 * step)))
+                scores.append(score(turns[-1]))
+            chosen = turns[int(np.argmin(scores))]
+            params.w.copy_(params.turned(math.radians(chosen)))
+            params.w_ref.copy_(params.w.detach())
+        self.result.axis_searches.append({"iteration": it, "turn_deg": turns, "loss": scores, "chosen_deg": chosen})
+
+    def advance(self, until: int, monitor: Monitor) -> None:
+        """Run iterations up to (not including) ``until`` (at most the last, ``n``): evaluate, record,
+        step; the last iteration only evaluates."""
+        import torch
+
+        while self.it <= min(until - 1, self.n):
+            it, final = self.it, self.it == self.n
+            size = "half" if it < self.coarse else "full"
+            if it in self.searches:
+                self._axis_search(it)
+            monitor.step("tto", it / max(self.n, 1), f"iteration {it}/{self.n} ({size} size)")
+            with torch.set_grad_enabled(not final):
+                total, losses, poses = self._evaluate(size)
+            self.result.trace.append({
+                "iteration": it, "size": size, "loss": float(total.detach()),
+                "views": {k: {"mncc": losses[k][1], "dice_loss": losses[k][2], "vessel_ncc": losses[k][3],
+                              "pose": poses[k].tolist()} for k in self.names},
+            })
+            if size == "full":
+                self._record_best(losses, poses, it)
+            if not final:
+                self.optimiser.zero_grad()
+                total.backward()
+                self.optimiser.step()
+                self.scheduler.step()
+            self.it += 1
+
+    def finish(self) -> TTOResult:
+        """The result: the best pose seen (per view, or of the patient pose)."""
+        result = self.result
+        for _, scores, poses, it in self.best.values():
+            for name, pose in poses.items():
+                result.poses[name], result.best_mncc[name], result.best_iteration[name] = pose, scores[name], it
+        if self.joint:
+            result.patient_pose = patient_pose(result.poses[self.names[0]], self.rig[self.names[0]])
+        return result
 
 
 def test_time_optimise(
@@ -262,119 +409,56 @@ def test_time_optimise(
     """Optimise the poses of ``views`` through ``renderer``'s differentiable kernel: one patient
     pose when ``rig`` (``{view: A_v}``) is given (the views' start poses must be ``X @ A_v`` of one
     ``X``), else each view's own (``schedule.paper`` for the published schedule)."""
-    import torch
-
     monitor = monitor or Monitor()
-    n = schedule.iterations
-    if n < 0:
-        raise ValueError(f"iterations must be >= 0, got {n}")
-    dev = renderer.device
-    images = _Images(renderer, views, objective)
-    joint = rig is not None
-    if joint:
-        X0 = patient_pose(views[0].pose, rig[views[0].name])
-        params = _PatientParams(X0, {v.name: rig[v.name] for v in views}, dev, schedule.rotation_prior_per_rad2)
-    else:
-        params = _ViewParams(views, dev)
-    names = [v.name for v in views]
-    coarse = schedule.coarse_steps() if n > 0 else 0
-    # best[...] = (objective loss, per-view mNCC, per-view pose, iteration); one entry for a patient pose
-    best: dict = {}
-
-    def consider(key: str, loss: float, scores: dict, poses: dict, it: int) -> None:
-        if key not in best or loss < best[key][0]:
-            best[key] = (loss, scores, poses, it)
-
-    def evaluate(size: str) -> tuple:
-        poses = params.poses()
-        losses = {}
-        rotations = {}
-        total = torch.zeros((), dtype=torch.float64, device=dev)
-        for name in names:
-            view_loss, sim, dice, vessel = images.loss(name, poses[name], size)
-            losses[name] = (float(view_loss.detach()), float(sim.detach()), float(dice.detach()),
-                            None if vessel is None else float(vessel.detach()))
-            total = total + view_loss
-            rotations[name] = poses[name][:, :3, :3]
-        if biplanar and len(names) == 2:
-            total = total + C.BIPLANAR_WEIGHT * biplanar_penalty(rotations[names[0]], rotations[names[1]]).sum()
-        if joint:
-            total = total + params.rotation_prior()
-        return total, losses, {k: p.detach()[0].cpu().numpy() for k, p in poses.items()}
-
-    def record_best(losses: dict, poses: dict, it: int) -> None:
-        if joint:
-            prior = float(params.rotation_prior().detach())
-            consider("patient", sum(v[0] for v in losses.values()) + prior, {k: v[1] for k, v in losses.items()}, poses, it)
-        else:  # per view; the paper keeps the pose of best mNCC
-            for name in names:
-                key = -losses[name][1] if schedule.paper else losses[name][0]
-                consider(name, key, {name: losses[name][1]}, {name: poses[name]}, it)
-
-    result = TTOResult({}, {}, {})
-    if coarse > 0:  # the start, scored at full size (the coarse steps are not compared with it)
-        with torch.no_grad():
-            _, losses, poses = evaluate("full")
-        record_best(losses, poses, 0)
-    optimiser = scheduler = None
-    if n > 0:
-        groups = params.groups(schedule)
-        optimiser = torch.optim.NAdam(groups, lr=groups[0]["lr"])
-        scheduler = torch.optim.lr_scheduler.OneCycleLR(
-            optimiser, max_lr=[g["lr"] for g in groups], total_steps=n, pct_start=C.TTO_WARMUP_FRACTION,
-            div_factor=C.TTO_DIV_FACTOR, cycle_momentum=False,
-        )
-
-    def axis_search(it: int) -> None:
-        """Turn the patient about the common axis to the objective's best (``TTOSchedule``), the
-        other parameters held, and centre the rotation prior there."""
-        step = schedule.axis_search_step_deg
-        w0 = params.w.detach().clone()
-
-        def score(deg: float) -> float:
-            params.w.copy_(params.turned(math.radians(deg)))
-            _, losses, _ = evaluate("full")
-            params.w.copy_(w0)
-            return sum(v[0] for v in losses.values())
-
-        with torch.no_grad():
-            turns = [-step, 0.0, step]
-            scores = [score(d) for d in turns]
-            curvature = scores[0] + scores[2] - 2 * scores[1]
-            if curvature > 0:
-                turns.append(float(np.clip(step * (scores[0] - scores[2]) / (2 * curvature), -2 * step, 2 * step)))
-                scores.append(score(turns[-1]))
-            chosen = turns[int(np.argmin(scores))]
-            params.w.copy_(params.turned(math.radians(chosen)))
-            params.w_ref.copy_(params.w.detach())
-        result.axis_searches.append({"iteration": it, "turn_deg": turns, "loss": scores, "chosen_deg": chosen})
-
-    searches = schedule.axis_search_iterations() if joint and params.prior_axis is not None else set()
-    for it in range(n + 1):
-        final = it == n
-        size = "half" if it < coarse else "full"
-        if it in searches:
-            axis_search(it)
-        monitor.step("tto", it / max(n, 1), f"iteration {it}/{n} ({size} size)")
-        with torch.set_grad_enabled(not final):
-            total, losses, poses = evaluate(size)
-        result.trace.append({
-            "iteration": it, "size": size, "loss": float(total.detach()),
-            "views": {k: {"mncc": losses[k][1], "dice_loss": losses[k][2], "vessel_ncc": losses[k][3], "pose": poses[k].tolist()}
-                      for k in names},
-        })
-        if size == "full":
-            record_best(losses, poses, it)
-        if not final:
-            optimiser.zero_grad()
-            total.backward()
-            optimiser.step()
-            scheduler.step()
-    for key, (_, scores, poses, it) in best.items():
-        for name, pose in poses.items():
-            result.poses[name], result.best_mncc[name], result.best_iteration[name] = pose, scores[name], it
-    if joint:
-        result.patient_pose = patient_pose(result.poses[names[0]], rig[names[0]])
+    run = _Run(_Images(renderer, views, objective), {v.name: v.pose for v in views}, schedule, rig, biplanar,
+               renderer.device)
+    run.advance(run.n + 1, monitor)
     monitor.step("tto", 1.0, "done")
-    return result
+    return run.finish()
 
+
+def test_time_optimise_starts(
+    renderer: TorchRenderer,
+    views: list[TTOView],
+    starts: Mapping[str, np.ndarray],
+    rig: Mapping[str, np.ndarray],
+    schedule: TTOSchedule = TTOSchedule(),
+    *,
+    keep: Sequence[str] = (),
+    objective: Objective = Objective(),
+    monitor: Monitor | None = None,
+) -> dict[str, TTOResult]:
+    """One patient pose optimised from several starts ``{name: X}`` ``(4, 4)``, as a tournament:
+    every start runs the coarse steps, then the starts named in ``keep`` and the best others by
+    the full-size loss after them (the first full-size iteration, after the first common-axis
+    search; ``schedule.finalists`` in all) run to the end. Returns every
+    run by name; a run stopped after the coarse steps has ``stopped_at`` set. ``views`` give the
+    targets (their poses only choose the CTA level and whether a view has a vessel term)."""
+    monitor = monitor or Monitor()
+    names = list(starts)
+    unknown = [k for k in keep if k not in starts]
+    if unknown:
+        raise ValueError(f"keep names starts that were not given: {unknown}")
+    images = _Images(renderer, views, objective)
+    runs = {name: _Run(images, view_poses(X, rig), schedule, rig, False, renderer.device) for name, X in starts.items()}
+    first = next(iter(runs.values()))
+    n_final = max(schedule.finalists, len(keep))
+    ranking: dict[str, float] = {}
+    if first.coarse == 0 or len(runs) <= n_final:
+        finalists, parts, offset = names, len(names), 0
+    else:  # every start through its first full-size evaluation (after the coarse steps and the first search)
+        parts, offset = len(names) + n_final, len(names)
+        for i, name in enumerate(names):
+            runs[name].advance(first.coarse + 1, monitor.part(i, parts, f"from {name}"))
+        ranking = {name: runs[name].result.trace[first.coarse]["loss"] for name in names}
+        ranked = sorted((k for k in names if k not in keep), key=ranking.get)
+        finalists = list(keep) + ranked[:n_final - len(keep)]
+    for j, name in enumerate(finalists):
+        runs[name].advance(first.n + 1, monitor.part(offset + j, parts, f"from {name}"))
+    out = {}
+    for name, run in runs.items():
+        out[name] = run.finish()
+        out[name].stopped_at = None if name in finalists else run.it
+        out[name].ranking_loss = ranking.get(name)
+    monitor.step("tto", 1.0, "done")
+    return out
