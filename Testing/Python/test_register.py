@@ -335,6 +335,16 @@ class SideSwappedInit(OracleInit):
         return pose, label, np.eye(3)[read]
 
 
+def test_the_dicom_angles_result_is_kept_on_a_tie():
+    """The lowest final objective wins; within OBJECTIVE_TIE of it, the DICOM angles' result does."""
+    from geopose.register.pipeline import DICOM_START, OBJECTIVE_TIE, chosen_result
+
+    assert chosen_result({DICOM_START: -0.46458, "Init PA": -0.46460}) == DICOM_START
+    assert chosen_result({DICOM_START: -0.40, "Init": -0.40 - 2 * OBJECTIVE_TIE}) == "Init"
+    assert chosen_result({"Init": -0.30, DICOM_START: -0.50}) == DICOM_START
+    assert chosen_result({"Refine": -0.7}) == "Refine"
+
+
 def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     """Init 20 deg / 60 mm off, reading the lateral on the wrong side: the DICOM-angle pose scores
     best of the candidate starts, the TTO runs from it and from the one distinct learned start, the
