@@ -20,7 +20,8 @@ from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
 #: 5: ``registration.tto_ranking_loss`` and ``tto_stopped_at`` (the TTO's tournament of starts: each
-#: start's full-size loss after the coarse steps; the iteration the ones not kept stopped at).
+#: start's full-size loss after the coarse steps and the first common-axis search; the iteration
+#: the ones not kept stopped at).
 #: 4: ``tto_axis_searches`` (the TTO's turns about the biplane common axis: iteration, turns in
 #: deg, losses, the turn chosen). 3: ``engine`` (backend, renderer, device, render sizes, CTA
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
@@ -165,8 +166,8 @@ def build_record(
             "DICOM angles (nominal_pose_centred); independent views: each view on its own (the published pipeline)",
             "tto_start": case.registration.chosen_start,
             "tto_start_doc": "the start the result came from: every distinct start runs the TTO's coarse steps, the DICOM "
-            "angles' run and the best other by the full-size loss there run to the end, the lower objective wins "
-            "(without a TTO: the best start)",
+            "angles' run and the best other by the full-size loss there run to the end, the lower objective wins, the "
+            "DICOM angles' within a tie of 1e-3 (without a TTO: the best start)",
             "start_objective": case.registration.starts,
             "tto_objective": case.registration.tto_objective,
             "tto_ranking_loss": {k: r.ranking_loss for k, r in case.registration.tto_runs.items() if r.ranking_loss is not None},
