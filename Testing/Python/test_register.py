@@ -386,10 +386,15 @@ def test_one_views_init_alone_is_a_start_when_the_other_view_is_far_off(phantom_
     far_lat = _perturb(true["lat"], (2.0, 0.0, 0.0), (0.0, 50.0, -50.0))
     init = OracleInit([N @ isopose(C.VIEW_PA), N @ near_pa, N @ far_lat])
     labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    seen: list[float] = []
     result = register_case(
         cta, runs, models=oracle_models(init, OracleRefine([])), segmentation=labels.like((labels.array >= 2).astype(np.uint8)),
         options=RegistrationOptions(backend="torch", device="cpu", tto_px=96),
+        progress=lambda stage, f, message: seen.append(f) if stage == "tto" else None,
     )
+    # The tournament's progress rises steadily through every start's share to the end.
+    assert seen[-1] == 1.0 and all(b >= a for a, b in zip(seen, seen[1:]))
+    assert max(b - a for a, b in zip(seen, seen[1:])) < 0.05
     registration = result.registration
     assert registration.starts["Init PA"] < min(registration.starts["Init"], registration.starts["Init LAT"])
     assert registration.chosen_start == "Init PA"

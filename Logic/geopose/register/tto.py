@@ -360,15 +360,16 @@ class _Run:
 
     def advance(self, until: int, monitor: Monitor) -> None:
         """Run iterations up to (not including) ``until`` (at most the last, ``n``): evaluate, record,
-        step; the last iteration only evaluates."""
+        step; the last iteration only evaluates. ``monitor`` sees the fraction of this call's work."""
         import torch
 
-        while self.it <= min(until - 1, self.n):
+        begin, end = self.it, min(until, self.n + 1)
+        while self.it < end:
             it, final = self.it, self.it == self.n
             size = "half" if it < self.coarse else "full"
             if it in self.searches:
                 self._axis_search(it)
-            monitor.step("tto", it / max(self.n, 1), f"iteration {it}/{self.n} ({size} size)")
+            monitor.step("tto", (it - begin) / max(end - begin, 1), f"iteration {it}/{self.n} ({size} size)")
             with torch.set_grad_enabled(not final):
                 total, losses, poses = self._evaluate(size)
             self.result.trace.append({
