@@ -432,14 +432,14 @@ def test_time_optimise_starts(
     """One patient pose optimised from several starts ``{name: X}`` ``(4, 4)``, as a tournament:
     every start runs the coarse steps, then the starts named in ``keep`` and the best others by
     the full-size loss after them (the first full-size iteration, after the first common-axis
-    search; ``schedule.finalists`` in all) run to the end. Returns every
-    run by name; a run stopped after the coarse steps has ``stopped_at`` set. ``views`` give the
-    targets (their poses only choose the CTA level and whether a view has a vessel term)."""
+    search; ``schedule.finalists`` in all) run to the end. Returns every run by name; a run
+    stopped after the coarse steps has ``stopped_at`` set. ``views`` give the targets (their
+    poses only choose the CTA level and whether a view has a vessel term)."""
     monitor = monitor or Monitor()
     names = list(starts)
     unknown = [k for k in keep if k not in starts]
-    if unknown:
-        raise ValueError(f"keep names starts that were not given: {unknown}")
+    if not names or unknown:
+        raise ValueError(f"need at least one start, and keep must name given starts (unknown: {unknown})")
     images = _Images(renderer, views, objective)
     runs = {name: _Run(images, view_poses(X, rig), schedule, rig, False, renderer.device) for name, X in starts.items()}
     first = next(iter(runs.values()))
