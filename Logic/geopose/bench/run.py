@@ -29,7 +29,7 @@ from ..options import RegistrationOptions
 from ..register.biplane import nominal_poses, patient_pose
 from ..register.case import VIEW_KEYS, silhouette_dice
 from ..register.evaluate import carotid_mpcd, evaluate_pose
-from ..register.pipeline import register_case, torch_renderer_for, tto_views
+from ..register.pipeline import DICOM_START, register_case, torch_renderer_for, tto_views
 from ..register.results import CaseRegistration
 from ..register.tto import TTOSchedule, test_time_optimise
 from .cases import BenchCase
@@ -120,7 +120,7 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
         poses[f"independent: greedy Refine + {n} TTO"] = {k: paper.views[k].final_pose for k in VIEW_KEYS}
         curves[LEARNED_ROW.format(n=n)] = _curves(case, joint.tto.trace)
         # The registration's own TTO run from the DICOM angles is the native row.
-        native = joint.registration.tto_runs["DICOM angles"]
+        native = joint.registration.tto_runs[DICOM_START]
         poses[NATIVE_TTO_ROW.format(n=n)] = dict(native.poses)
         curves[NATIVE_TTO_ROW.format(n=n)] = _curves(case, native.trace)
         tto_renderer = torch_renderer_for(joint.renderer)
