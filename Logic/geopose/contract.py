@@ -65,5 +65,16 @@ MAP_CLIP_PERCENTILES: Final = (25.0, 75.0)
 #: Ours, not the paper's: the vessel image (temporal mean) keeps the percentiles (over the DSA cranium
 #: mask) between which the opacified vessels stand out of the noise (docs/objective.md).
 VESSEL_CLIP_PERCENTILES: Final = (90.0, 99.9)
+#: Ours: which of the CTA's vessels the runs show opacified (``register/opacified.py``). A vessel voxel is
+#: kept when, in every view with a vessel image, that image (blurred by ``OPACIFIED_BLUR_PX`` at the TTO
+#: size, scaled to max 1) reaches ``OPACIFIED_THRESHOLD`` where the voxel projects; when fewer than
+#: ``OPACIFIED_MIN_FRACTION`` of the voxels pass, the pose is taken as too far off and all are kept.
+OPACIFIED_BLUR_PX: Final = 2.0
+OPACIFIED_THRESHOLD: Final = 0.02
+OPACIFIED_MIN_FRACTION: Final = 0.05
+#: A TTO run continues with the opacified vessels only when its patient pose places the CTA's vessels
+#: within this mean distance (mm) of where the selection was read; a farther run keeps all of them
+#: (they guide a far start better).
+OPACIFIED_NEAR_MM: Final = 5.0
 BILATERAL_SPATIAL_SIGMA_PX: Final = 11.0
 BILATERAL_RANGE_SIGMA: Final = 11.0

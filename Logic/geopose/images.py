@@ -5,11 +5,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
+import SimpleITK as sitk
 
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["block_mean", "normalize_minmax", "resize_bilinear"]
+__all__ = ["bilinear_sample", "block_mean", "gaussian_blur", "normalize_minmax", "resize_bilinear"]
 
 ImageBatch = TypeVar("ImageBatch", np.ndarray, "Tensor")
 
@@ -71,4 +72,29 @@ def block_mean(array: np.ndarray, factors: tuple[int, ...]) -> np.ndarray:
         shape = [1] * out.ndim
         shape[axis] = -1
         out = sums / counts.reshape(shape)
+    return out
+
+
+def gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
+    """Gaussian blur (sd ``sigma_px`` along rows, columns; edge values repeated), float64."""
+    if max(sigma_px) <= 0:
+        return np.asarray(image, dtype=np.float64)
+    img = sitk.GetImageFromArray(np.asarray(image, dtype=np.float64))
+    variance = [float(sigma_px[1]) ** 2, float(sigma_px[0]) ** 2]  # sitk order: x (columns), y (rows)
+    out = sitk.DiscreteGaussian(img, variance=variance, maximumKernelWidth=256, useImageSpacing=False)
+    return sitk.GetArrayFromImage(out)
+
+
+def bilinear_sample(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image`` at fractional pixel ``(rows, cols)``; outside the image it is 0."""
+    h, w = image.shape
+    r0, c0 = np.floor(rows), np.floor(cols)
+    fr, fc = rows - r0, cols - c0
+    r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
+    out = np.zeros(rows.shape, dtype=np.float64)
+    for dr, wr in ((0, 1.0 - fr), (1, fr)):
+        for dc, wc in ((0, 1.0 - fc), (1, fc)):
+            r, c = r0 + dr, c0 + dc
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            out += np.where(inside, image[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], 0.0) * wr * wc
     return out

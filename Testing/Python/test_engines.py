@@ -295,3 +295,30 @@ def test_slicer_logic_without_torch_runs_init_and_refine(phantom_folder):
         np.testing.assert_allclose(out["pose_ras"][key], out["record_pose_ras"][key], atol=1e-6)
     assert out["table_rows"] == 2
     assert out["options"]["model_clip_percentiles"] == [2.0, 98.0] and out["options"]["iterations"] == 25
+
+
+def test_a_volume_with_a_vessel_subset_equals_one_built_with_it():
+    """``RenderVolume.with_vessels`` recomputes only the vessel channel of the levels built so far, from
+    the kept voxels: equal to a volume built with that subset as its vessel mask, edge blocks (which
+    hold fewer voxels) included, with the CTA array untouched."""
+    rng = np.random.default_rng(3)
+    hu = rng.normal(0.0, 300.0, (21, 18, 23)).astype(np.float32)
+    hu[:2] = -1000.0  # empty slices: the levels are cropped
+    cta = Volume(hu.copy(), np.diag([1.1, 0.9, 1.3, 1.0]))
+    vessels = rng.random(hu.shape) < 0.2
+    keep = (rng.random(hu.shape) < 0.5) & vessels
+    volume = RenderVolume(cta, {"vessels": cta.like(vessels.astype(np.uint8))})
+    factors = [(1, 1, 1), (2, 2, 2), (4, 2, 8)]
+    for f in factors:
+        volume.level(f)
+    subset = volume.with_vessels(keep | ~vessels)  # voxels outside the vessel mask are not vessels
+    reference = RenderVolume(cta, {"vessels": cta.like(keep.astype(np.uint8))})
+    for f in factors:
+        a, b = subset.level(f), reference.level(f)
+        assert a.density.shape == b.density.shape and np.allclose(a.ijk_to_world, b.ijk_to_world)
+        np.testing.assert_allclose(a.density, b.density, atol=1e-6)
+        assert a.density[2].sum() < volume.level(f).density[2].sum()
+    np.testing.assert_array_equal(cta.array, hu)
+    assert subset.mask("vessels").sum() == keep.sum()
+    with pytest.raises(ValueError, match="vessel subset"):
+        volume.with_vessels(keep[:-1])

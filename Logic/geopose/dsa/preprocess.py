@@ -16,7 +16,7 @@ import SimpleITK as sitk
 from .. import contract as C
 from ..geometry.detector import Detector
 from ..errors import InputError
-from ..images import block_mean, normalize_minmax
+from ..images import bilinear_sample, block_mean, gaussian_blur, normalize_minmax
 from ..options import check_clip_percentiles
 from .run import DSARun
 
@@ -108,31 +108,6 @@ def clip_intensities(
     return clipped - clipped.min()
 
 
-def _gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
-    """Gaussian blur (sd ``sigma_px`` along rows, columns; edge values repeated), float64."""
-    if max(sigma_px) <= 0:
-        return np.asarray(image, dtype=np.float64)
-    img = sitk.GetImageFromArray(np.asarray(image, dtype=np.float64))
-    variance = [float(sigma_px[1]) ** 2, float(sigma_px[0]) ** 2]  # sitk order: x (columns), y (rows)
-    out = sitk.DiscreteGaussian(img, variance=variance, maximumKernelWidth=256, useImageSpacing=False)
-    return sitk.GetArrayFromImage(out)
-
-
-def _bilinear(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` at fractional pixel ``(rows, cols)``; outside the image it is 0."""
-    h, w = image.shape
-    r0, c0 = np.floor(rows), np.floor(cols)
-    fr, fc = rows - r0, cols - c0
-    r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
-    out = np.zeros(rows.shape, dtype=np.float64)
-    for dr, wr in ((0, 1.0 - fr), (1, fr)):
-        for dc, wc in ((0, 1.0 - fc), (1, fc)):
-            r, c = r0 + dr, c0 + dc
-            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-            out += np.where(inside, image[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], 0.0) * wr * wc
-    return out
-
-
 def resample_to_detector(image: np.ndarray, source: Detector, target: Detector) -> np.ndarray:
     """Resample a detector image to another detector sharing the same source and axis.
 
@@ -152,8 +127,8 @@ def resample_to_detector(image: np.ndarray, source: Detector, target: Detector) 
         target.spacing_mm[0] * source.sdd_mm / (target.sdd_mm * source.spacing_mm[0]),
         target.spacing_mm[1] * source.sdd_mm / (target.sdd_mm * source.spacing_mm[1]),
     )
-    smooth = _gaussian_blur(image.astype(np.float64), tuple(0.5 * r if r > 1 else 0.0 for r in ratio))
-    return _bilinear(smooth, src_rc[..., 0], src_rc[..., 1]).astype(np.float32)
+    smooth = gaussian_blur(image.astype(np.float64), tuple(0.5 * r if r > 1 else 0.0 for r in ratio))
+    return bilinear_sample(smooth, src_rc[..., 0], src_rc[..., 1]).astype(np.float32)
 
 
 def resample_to_model_sdd(image: np.ndarray, detector: Detector, model: Detector | None = None) -> np.ndarray:

@@ -33,16 +33,19 @@ class Objective:
     and the DRR's vessel channel; 0 where the CTA has no vessel channel), the rest on the
     GeoReg silhouette terms, of which ``ncc_weight`` on -mNCC and the rest on the Dice loss.
     ``clip_drr``: compare the silhouette target with the DRR clipped like it (its
-    ``clip_percentiles`` over the DSA mask's columns, then masked) instead of the raw DRR."""
+    ``clip_percentiles`` over the DSA mask's columns, then masked) instead of the raw DRR.
+    ``read_opacified``: the TTO reads which vessels the runs show opacified after its coarse steps
+    and compares those alone from then on (``opacified.py``)."""
 
     ncc_weight: float = C.TTO_NCC_WEIGHT
     clip_drr: bool = True
     clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
     vessel_weight: float = 0.75
+    read_opacified: bool = True
 
 
 #: The paper's objective: the raw DRR against the clipped MAP, no vessel term.
-PAPER_OBJECTIVE = Objective(clip_drr=False, vessel_weight=0.0)
+PAPER_OBJECTIVE = Objective(clip_drr=False, vessel_weight=0.0, read_opacified=False)
 
 
 @dataclass(frozen=True)

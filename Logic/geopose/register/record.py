@@ -19,6 +19,9 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 6: ``registration.tto_vessel_selection`` (the opacified vessels the TTO's vessel term kept after its
+#: coarse steps: voxels kept of all, where it was read, the runs that kept them; ``register/opacified.py``),
+#: null without one.
 #: 5: ``registration.tto_ranking_loss`` and ``tto_stopped_at`` (the TTO's tournament of starts: each
 #: start's full-size loss after the coarse steps and the first common-axis search; the iteration
 #: the ones not kept stopped at).
@@ -27,7 +30,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -132,6 +135,14 @@ def _view_entry(case: CaseRegistration, v: ViewOutcome, run: DSARun) -> dict:
     return entry
 
 
+def _vessel_selection(case: CaseRegistration) -> dict | None:
+    """The TTO's reading of the opacified vessels and the runs that compared them alone, or None."""
+    selection = case.registration.vessel_selection
+    if selection is None:
+        return None
+    return selection.summary() | {"runs": [k for k, r in case.registration.tto_runs.items() if r.vessel_selection is not None]}
+
+
 def build_record(
     case: CaseRegistration,
     runs: dict[str, DSARun],
@@ -172,6 +183,7 @@ def build_record(
             "tto_objective": case.registration.tto_objective,
             "tto_ranking_loss": {k: r.ranking_loss for k, r in case.registration.tto_runs.items() if r.ranking_loss is not None},
             "tto_stopped_at": {k: r.stopped_at for k, r in case.registration.tto_runs.items() if r.stopped_at is not None},
+            "tto_vessel_selection": _vessel_selection(case),
             "patient_pose_centred": None if case.registration.patient_pose is None else _m(case.registration.patient_pose),
             "nominal_pose_centred": {k: _m(A) for k, A in case.registration.rig.items()},
             "checks": case.registration.checks,

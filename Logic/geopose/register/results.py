@@ -19,6 +19,7 @@ from .quality import Quality
 
 if TYPE_CHECKING:
     from ..render.renderer import Renderer
+    from .opacified import VesselSelection
     from .tto import TTOResult
 
 __all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "ViewOutcome", "Registration", "CaseRegistration"]
@@ -99,7 +100,9 @@ class Registration:
     the candidate starts with their objective (``starts``), the TTO run from each distinct start
     (``tto_runs``; those not among the tournament's finalists stopped after the coarse steps) with
     the finalists' final objective (``tto_objective``), the start the result came from
-    (``chosen_start``); the consistency ``checks`` of the two views."""
+    (``chosen_start``); the opacified vessels the TTO read after its coarse steps
+    (``vessel_selection``, ``opacified.py``; None: not read), by which alone ``tto_objective``
+    compares the finalists; the consistency ``checks`` of the two views."""
 
     mode: str
     rig: dict[str, np.ndarray] = field(default_factory=dict)
@@ -108,6 +111,7 @@ class Registration:
     chosen_start: str = ""
     tto_runs: dict[str, "TTOResult"] = field(default_factory=dict)
     tto_objective: dict[str, float] = field(default_factory=dict)
+    vessel_selection: "VesselSelection | None" = None
     checks: dict = field(default_factory=dict)
 
 

@@ -21,12 +21,14 @@ full size. The result is the pose of best full-size objective seen, the start in
 (per view for independent views, jointly for a patient pose; the paper's schedule keeps
 each view's best mNCC). :func:`test_time_optimise_starts` runs one patient pose from several
 starts as a tournament: all through the coarse steps, the best few (by the full-size loss
-after them and the first common-axis search) on to the end. Poses in and out are numpy
+after them and the first common-axis search) on to the end; there the vessels the runs show
+opacified are read and the runs near the best compare those alone (:mod:`.opacified`). Poses in and out are numpy
 ``(4, 4)`` (centred CTA frame, mm); this is the one stage that needs PyTorch.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
@@ -39,6 +41,7 @@ from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
 from .biplane import common_axis, patient_pose, view_poses
 from .objective import Objective, combine
+from .opacified import VesselSelection, read_opacified, vessel_shift_mm
 from .progress import Monitor
 
 __all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "test_time_optimise", "test_time_optimise_starts",
@@ -116,7 +119,8 @@ class TTOResult:
     ``axis_searches``: per common-axis search its iteration, turns (deg), losses and choice;
     ``stopped_at``: the iteration a start of :func:`test_time_optimise_starts` stopped at when it
     was not among the finalists (None: it ran to the end); ``ranking_loss``: the full-size loss
-    at the first full-size iteration it was ranked by there (None without a ranking)."""
+    at the first full-size iteration it was ranked by there (None without a ranking);
+    ``vessel_selection``: the opacified vessels this run's vessel term kept from then on (None: all)."""
 
     poses: dict[str, np.ndarray]
     best_mncc: dict[str, float]
@@ -126,6 +130,7 @@ class TTOResult:
     axis_searches: list[dict] = field(default_factory=list)
     stopped_at: int | None = None
     ranking_loss: float | None = None
+    vessel_selection: VesselSelection | None = None
 
 
 def biplanar_penalty(R_pa, R_lat):
@@ -147,24 +152,38 @@ class _Images:
     """Each view's target, mask, detector and DRR kernel at full and half size, and the objective."""
 
     def __init__(self, renderer: TorchRenderer, views: list[TTOView], objective: Objective) -> None:
+        self.objective, self.views = objective, views
+        self.channels = renderer.channel_index(TTO_CHANNELS)
+        self.vessel_term: dict[str, bool] = {}
+        self.bind(renderer)
+
+    def rebound(self, renderer: TorchRenderer) -> "_Images":
+        """The same targets and terms rendered through ``renderer`` (e.g. one whose vessel channel
+        holds the opacified vessels only)."""
+        other = copy.copy(self)
+        other.bind(renderer)
+        return other
+
+    def bind(self, renderer: TorchRenderer) -> None:
+        """Render through ``renderer``."""
         import torch
 
-        self.objective = objective
-        self.channels = renderer.channel_index(TTO_CHANNELS)
+        self.renderer = renderer
         as_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=renderer.device)[None, None]  # noqa: E731
         self.levels = {}
-        self.vessel_term = {}
-        for v in views:
+        for v in self.views:
             for size, (target, mask, vessels, det) in (("full", (v.target, v.mask, v.vessels, v.detector)), ("half", _half(v))):
                 drr = renderer.drr(renderer.level_for_pose(v.pose, det))
                 m = (as_t(mask) > 0).float()
                 columns = m[0, 0].amax(0) > 0
                 self.levels[v.name, size] = (as_t(target), m, columns, as_t(vessels), det, drr)
+            if v.name in self.vessel_term:  # a new vessel channel keeps the terms the objective had
+                continue
             # The vessel term only where the CTA has vessels in this view (its channel is not empty).
             with torch.no_grad():
                 _, _, _, _, det, drr = self.levels[v.name, "full"]
                 start = torch.as_tensor(v.pose, dtype=torch.float64, device=renderer.device)[None]
-                self.vessel_term[v.name] = objective.vessel_weight > 0 and bool(
+                self.vessel_term[v.name] = self.objective.vessel_weight > 0 and bool(
                     drr(start, detector=det, channels=(self.channels[2],)).amax() > 0)
 
     def loss(self, name: str, pose, size: str):
@@ -282,8 +301,10 @@ class _Run:
         self.coarse = schedule.coarse_steps() if self.n > 0 else 0
         self.searches = (schedule.axis_search_iterations() if self.joint and self.params.prior_axis is not None
                          else set())
-        # best[...] = (objective loss, per-view mNCC, per-view pose, iteration); one entry for a patient pose
+        # best[...] = (objective loss, per-view mNCC, per-view pose, iteration, prior); one entry for a patient
+        # pose, whose full-size evaluations are kept in ``seen`` (poses, iteration, prior) to be scored again
         self.best: dict = {}
+        self.seen: list[tuple[dict, int, float]] = []
         self.result = TTOResult({}, {}, {})
         self.it = 0
         if self.coarse > 0:  # the start, scored at full size (the coarse steps are not compared with it)
@@ -318,19 +339,40 @@ class _Run:
             total = total + self.params.rotation_prior()
         return total, losses, {k: p.detach()[0].cpu().numpy() for k, p in poses.items()}
 
-    def _consider(self, key: str, loss: float, scores: dict, poses: dict, it: int) -> None:
+    def _consider(self, key: str, loss: float, scores: dict, poses: dict, it: int, prior: float = 0.0) -> None:
         if key not in self.best or loss < self.best[key][0]:
-            self.best[key] = (loss, scores, poses, it)
+            self.best[key] = (loss, scores, poses, it, prior)
 
     def _record_best(self, losses: dict, poses: dict, it: int) -> None:
         if self.joint:
             prior = float(self.params.rotation_prior().detach())
+            self.seen.append((poses, it, prior))
             self._consider("patient", sum(v[0] for v in losses.values()) + prior, {k: v[1] for k, v in losses.items()},
-                           poses, it)
+                           poses, it, prior)
         else:  # per view; the paper keeps the pose of best mNCC
             for name in self.names:
                 key = -losses[name][1] if self.schedule.paper else losses[name][0]
                 self._consider(name, key, {name: losses[name][1]}, {name: poses[name]}, it)
+
+    def patient_at(self, it: int) -> np.ndarray:
+        """The patient pose ``(4, 4)`` this run evaluated at iteration ``it`` (a patient-pose run)."""
+        seen = self.result.trace[it]["views"]
+        name = next(iter(seen))
+        return patient_pose(np.asarray(seen[name]["pose"]), self.rig[name])
+
+    def rescore_best(self) -> None:
+        """Score the full-size patient poses seen so far again with the objective the images hold now
+        (their vessel channel changed) and keep the best, so that later iterations are compared with
+        them on equal terms."""
+        import torch
+
+        self.best.pop("patient", None)
+        with torch.no_grad():
+            for poses, it, prior in self.seen:
+                losses = {k: self.images.loss(k, torch.as_tensor(poses[k], dtype=torch.float64, device=self.device)[None],
+                                              "full") for k in self.names}
+                self._consider("patient", sum(float(v[0]) for v in losses.values()) + prior,
+                               {k: float(v[1]) for k, v in losses.items()}, poses, it, prior)
 
     def _axis_search(self, it: int) -> None:
         """Turn the patient about the common axis to the objective's best (``TTOSchedule``), the
@@ -389,7 +431,7 @@ class _Run:
     def finish(self) -> TTOResult:
         """The result: the best pose seen (per view, or of the patient pose)."""
         result = self.result
-        for _, scores, poses, it in self.best.values():
+        for _, scores, poses, it, _ in self.best.values():
             for name, pose in poses.items():
                 result.poses[name], result.best_mncc[name], result.best_iteration[name] = pose, scores[name], it
         if self.joint:
@@ -409,13 +451,40 @@ def test_time_optimise(
 ) -> TTOResult:
     """Optimise the poses of ``views`` through ``renderer``'s differentiable kernel: one patient
     pose when ``rig`` (``{view: A_v}``) is given (the views' start poses must be ``X @ A_v`` of one
-    ``X``), else each view's own (``schedule.paper`` for the published schedule)."""
+    ``X``; :func:`test_time_optimise_starts` with that one start), else each view's own
+    (``schedule.paper`` for the published schedule)."""
     monitor = monitor or Monitor()
-    run = _Run(_Images(renderer, views, objective), {v.name: v.pose for v in views}, schedule, rig, biplanar,
+    if rig is not None:
+        X = patient_pose(views[0].pose, rig[views[0].name])
+        return test_time_optimise_starts(renderer, views, {"start": X}, rig, schedule, objective=objective,
+                                         monitor=monitor)["start"]
+    run = _Run(_Images(renderer, views, objective), {v.name: v.pose for v in views}, schedule, None, biplanar,
                renderer.device)
     run.advance(run.n + 1, monitor)
     monitor.step("tto", 1.0, "done")
     return run.finish()
+
+
+def _restrict_to_opacified(images: _Images, runs: Mapping[str, _Run], leader: _Run, name: str, rig: Mapping[str, np.ndarray],
+                           it: int) -> VesselSelection | None:
+    """Read the opacified vessels (``opacified.read_opacified``) at the patient pose ``leader`` (start
+    ``name``) reached at iteration ``it``; each of ``runs`` whose pose there places the vessels within
+    ``OPACIFIED_NEAR_MM`` of it renders the vessel channel from them alone from now on, its best pose
+    so far scored again with that objective, and holds the selection (:attr:`TTOResult.vessel_selection`)."""
+    views = [(v.name, v.vessels, v.detector) for v in images.views if images.vessel_term[v.name]]
+    if not views:
+        return None
+    X = leader.patient_at(it)
+    selection = read_opacified(images.renderer.volume, X, rig, views, start=name, iteration=it)
+    if selection is None or not selection.applied:
+        return selection
+    restricted = images.rebound(TorchRenderer(images.renderer.volume.with_vessels(selection.keep), images.renderer.device))
+    for run in runs.values():
+        if vessel_shift_mm(images.renderer.volume, selection, run.patient_at(it)) <= C.OPACIFIED_NEAR_MM:
+            run.images = restricted
+            run.rescore_best()
+            run.result.vessel_selection = selection
+    return selection
 
 
 def test_time_optimise_starts(
@@ -430,11 +499,14 @@ def test_time_optimise_starts(
     monitor: Monitor | None = None,
 ) -> dict[str, TTOResult]:
     """One patient pose optimised from several starts ``{name: X}`` ``(4, 4)``, as a tournament:
-    every start runs the coarse steps, then the starts named in ``keep`` and the best others by
-    the full-size loss after them (the first full-size iteration, after the first common-axis
-    search; ``schedule.finalists`` in all) run to the end. Returns every run by name; a run
-    stopped after the coarse steps has ``stopped_at`` set. ``views`` give the targets (their
-    poses only choose the CTA level and whether a view has a vessel term)."""
+    every start runs the coarse steps (to its first full-size evaluation, after the first
+    common-axis search); there, with ``objective.read_opacified``, the vessels the runs show
+    are read at the pose of the start of lowest loss, and the runs near it compare those alone
+    from then on (``opacified.py``; :attr:`TTOResult.vessel_selection`); then the starts named in ``keep``
+    and the best others by the loss there (``schedule.finalists`` in all) run to the end.
+    Returns every run by name; a run stopped after the coarse steps has ``stopped_at`` set.
+    ``views`` give the targets (their poses only choose the CTA level and whether a view has a
+    vessel term)."""
     monitor = monitor or Monitor()
     names = list(starts)
     unknown = [k for k in keep if k not in starts]
@@ -445,15 +517,20 @@ def test_time_optimise_starts(
     first = next(iter(runs.values()))
     n_final = max(schedule.finalists, len(keep))
     ranking: dict[str, float] = {}
-    if first.coarse == 0 or len(runs) <= n_final:
-        finalists, parts, offset = names, len(names), 0
-    else:  # every start through its first full-size evaluation (after the coarse steps and the first search)
-        parts, offset = len(names) + n_final, len(names)
+    finalists, offset, parts = names, 0, len(names)
+    if first.coarse > 0:  # every start through its first full-size evaluation (after the coarse steps and the first search)
+        offset = len(names)
+        parts = offset + min(n_final, len(names))
         for i, name in enumerate(names):
             runs[name].advance(first.coarse + 1, monitor.part(i, parts, f"from {name}"))
-        ranking = {name: runs[name].result.trace[first.coarse]["loss"] for name in names}
-        ranked = sorted((k for k in names if k not in keep), key=ranking.get)
-        finalists = list(keep) + ranked[:n_final - len(keep)]
+        there = {name: runs[name].result.trace[first.coarse]["loss"] for name in names}
+        if len(names) > n_final:
+            ranking = there
+            ranked = sorted((k for k in names if k not in keep), key=ranking.get)
+            finalists = list(keep) + ranked[:n_final - len(keep)]
+        if objective.read_opacified:
+            leader = min(there, key=there.get)
+            _restrict_to_opacified(images, {k: runs[k] for k in finalists}, runs[leader], leader, rig, first.coarse)
     for j, name in enumerate(finalists):
         runs[name].advance(first.n + 1, monitor.part(offset + j, parts, f"from {name}"))
     out = {}

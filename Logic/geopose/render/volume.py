@@ -13,7 +13,7 @@ grid, so every level shows the same values. numpy only.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Mapping, Union
 
 import numpy as np
@@ -45,11 +45,13 @@ def footprint_mm(pixel_mm: float, sdd_mm: float, source_distance_mm: float) -> f
 class Level:
     """One working grid: ``density`` ``(C, K, J, I)`` float32 (channels as :data:`CHANNELS`),
     ``ijk_to_world`` 4x4 from voxel index to the centred CTA frame (mm), the block
-    ``factors`` (i, j, k) it was averaged by, and the ray-marching step (mm)."""
+    ``factors`` (i, j, k) it was averaged by, the index ``origin_blocks`` (k, j, i) of its first
+    block on the block grid of the whole CTA (where the crop began), and the ray-marching step (mm)."""
 
     density: np.ndarray
     ijk_to_world: np.ndarray
     factors: tuple[int, int, int]
+    origin_blocks: tuple[int, int, int] = (0, 0, 0)
 
     @property
     def spacing_mm(self) -> tuple[float, float, float]:
@@ -170,5 +172,33 @@ class RenderVolume:
         # Index of level voxel (i, j, k) in full-grid index units: its block centre.
         scale = np.diag([fi, fj, fk, 1.0]).astype(np.float64)
         scale[:3, 3] = (np.asarray([fi, fj, fk], dtype=np.float64) - 1.0) / 2.0 + np.asarray([fi, fj, fk]) * lo[::-1]
-        return Level(density, self.cta.ijk_to_centred @ scale, (fi, fj, fk))
+        return Level(density, self.cta.ijk_to_centred @ scale, (fi, fj, fk), tuple(int(v) for v in lo))
+
+    def with_vessels(self, keep: np.ndarray) -> "RenderVolume":
+        """The same CTA whose vessel channel holds only the voxels ``keep`` (``[k, j, i]`` bool on the
+        CTA grid, a subset of the vessel mask): e.g. the opacified ones (``register/opacified.py``).
+        The levels built so far are carried over with only their vessel channel recomputed (from
+        the kept voxels alone); the CTA and the other masks are shared, never copied."""
+        keep = np.asarray(keep, dtype=bool)
+        if keep.shape != self.cta.array.shape:
+            raise ValueError(f"the vessel subset is {keep.shape}, the CTA grid {self.cta.array.shape}")
+        vessels = self.mask("vessels")
+        keep = keep & vessels if vessels is not None else np.zeros_like(keep)
+        out = RenderVolume(self.cta, finest_spacing_mm=self.finest_spacing_mm)
+        out._mask_sources, out._masks, out._scale = dict(self._mask_sources), dict(self._masks), self._scale
+        out._masks["vessels"] = keep
+        if out._scale is None:
+            out._scale = self._scale = DensityScale.of(self.cta.array)
+        kji = np.argwhere(keep)
+        values = out._scale.apply(self.cta.array[tuple(kji.T)])
+        for factors, level in self._levels.items():
+            density = level.density.copy()
+            density[CHANNELS.index("vessels")] = 0.0
+            if len(kji):  # a block's mean over the full-grid voxels it holds (edge blocks hold fewer)
+                f = np.asarray(factors[::-1])
+                held = np.minimum(f, np.asarray(self.cta.array.shape) - (kji // f) * f).prod(axis=1)
+                np.add.at(density[CHANNELS.index("vessels")], tuple((kji // f - np.asarray(level.origin_blocks)).T),
+                          values / held)
+            out._levels[factors] = replace(level, density=density)
+        return out
 

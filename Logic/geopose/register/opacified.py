@@ -1,0 +1,106 @@
+"""Which of the CTA's vessels the DSA runs show opacified (numpy).
+
+A CTA shows every artery; a run shows those its injection fills (one carotid's territory
+for a selective injection). The vessel term compares the MAP's vessel image with the DRR's
+vessel channel, so the arteries the run does not show pull the pose towards where they
+would overlap the opacified ones: with the vessel channel restricted to the injected
+arteries (the phantom's labels, an oracle) the TTO started at the true pose no longer
+moves (docs/objective.md). Without labels, each vessel voxel of the CTA is projected into
+every view at a patient pose close to the truth and kept when every view's vessel image
+shows contrast where it lands (:func:`read_opacified`): a vessel the run does not fill lands
+on background in at least one of two orthogonal views, unless it overlaps a filled one in
+both. The test-time optimisation reads the selection once, after its coarse steps, at the
+pose of its best start, and the runs near that pose continue with it
+(``tto.test_time_optimise_starts``); far runs keep every vessel, whose wider net guides them
+better.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .. import contract as C
+from ..geometry.detector import Detector
+from ..geometry.poses import project_points
+from ..images import bilinear_sample, gaussian_blur
+from ..render.volume import RenderVolume
+
+__all__ = ["VesselSelection", "read_opacified", "vessel_shift_mm"]
+
+
+@dataclass(frozen=True)
+class VesselSelection:
+    """The vessel voxels kept (``keep``, ``[k, j, i]`` bool on the CTA grid), out of ``vessel_voxels``;
+    where it was read (``start`` name, TTO ``iteration``, the patient pose ``(4, 4)``); ``applied``:
+    False when too few passed (``OPACIFIED_MIN_FRACTION``) and all vessels stay in the objective."""
+
+    keep: np.ndarray
+    vessel_voxels: int
+    kept_voxels: int
+    applied: bool
+    start: str
+    iteration: int
+    patient_pose: np.ndarray
+
+    @property
+    def kept_fraction(self) -> float:
+        return self.kept_voxels / max(self.vessel_voxels, 1)
+
+    def summary(self) -> dict:
+        """The record's view of it (no voxel array)."""
+        return {"applied": self.applied, "vessel_voxels": self.vessel_voxels, "kept_voxels": self.kept_voxels,
+                "kept_fraction": round(self.kept_fraction, 4), "start": self.start, "iteration": self.iteration,
+                "patient_pose": np.asarray(self.patient_pose).tolist(), "blur_px": C.OPACIFIED_BLUR_PX,
+                "threshold": C.OPACIFIED_THRESHOLD}
+
+
+def _vessel_points_mm(volume: RenderVolume, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``[k, j, i]`` indices of the voxels ``keep`` and their centres ``(N, 3)`` (centred CTA frame, mm)."""
+    kji = np.argwhere(keep)
+    ijk1 = np.c_[kji[:, ::-1].astype(np.float64), np.ones(len(kji))]
+    return kji, (ijk1 @ volume.cta.ijk_to_centred.T)[:, :3]
+
+
+def vessel_shift_mm(volume: RenderVolume, selection: VesselSelection, patient: np.ndarray) -> float:
+    """Mean distance (mm) the kept vessels lie, in the isocentre frame, at patient pose ``patient`` from
+    where they lay at the pose the selection was read at."""
+    _, points = _vessel_points_mm(volume, selection.keep)
+    if not len(points):
+        return 0.0
+    moved = np.linalg.solve(np.asarray(patient, dtype=np.float64), np.c_[points, np.ones(len(points))].T)
+    read = np.linalg.solve(selection.patient_pose, np.c_[points, np.ones(len(points))].T)
+    return float(np.linalg.norm((moved - read)[:3], axis=0).mean())
+
+
+def read_opacified(
+    volume: RenderVolume,
+    patient: np.ndarray,
+    rig: Mapping[str, np.ndarray],
+    views: Sequence[tuple[str, np.ndarray, Detector]],
+    *,
+    start: str = "",
+    iteration: int = 0,
+) -> VesselSelection | None:
+    """The vessel voxels of ``volume`` that every view's vessel image shows at patient pose ``patient``
+    (``T_v = patient @ rig[v]``; ``views``: ``(name, vessel image (h, w), detector)``). None when the
+    CTA has no vessel voxels or no view a vessel image (nothing to select by)."""
+    vessels = volume.mask("vessels")
+    images = [(name, np.asarray(image, dtype=np.float64), det) for name, image, det in views if np.max(image) > 0]
+    if vessels is None or not vessels.any() or not images:
+        return None
+    kji, points_mm = _vessel_points_mm(volume, vessels)
+    shown = np.full(len(kji), np.inf)
+    for name, image, det in images:
+        smooth = gaussian_blur(image, (C.OPACIFIED_BLUR_PX, C.OPACIFIED_BLUR_PX))
+        smooth /= max(float(smooth.max()), 1e-12)
+        pixels, _ = project_points(np.asarray(patient, dtype=np.float64) @ rig[name], det, points_mm)
+        shown = np.minimum(shown, bilinear_sample(smooth, pixels[:, 0], pixels[:, 1]))
+    passed = shown >= C.OPACIFIED_THRESHOLD
+    applied = passed.mean() >= C.OPACIFIED_MIN_FRACTION
+    keep = np.zeros(vessels.shape, dtype=bool)
+    keep[tuple(kji[passed if applied else slice(None)].T)] = True
+    return VesselSelection(keep, len(kji), int(passed.sum()) if applied else len(kji), bool(applied), start, iteration,
+                           np.asarray(patient, dtype=np.float64))
