@@ -370,8 +370,7 @@ def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     assert result.tto is registration.tto_runs["DICOM angles"]
     # The finalists are compared by the objective of the opacified vessels read after the coarse steps.
     selection = registration.vessel_selection
-    judge = (result.renderer if selection is None
-             else make_renderer(result.renderer.volume.with_vessels(selection.keep), result.renderer.engine))
+    judge = result.renderer if selection is None else make_renderer(selection.volume, result.renderer.engine)
     final = sum(objective_value(judge, result.views[k].final_pose, result.views[k].prepared).loss for k in runs)
     assert final == pytest.approx(registration.tto_objective["DICOM angles"], abs=1e-9)
     start = sum(objective_value(judge, registration.rig[k], result.views[k].prepared).loss for k in runs)
@@ -449,17 +448,16 @@ def unilateral_case(tmp_path_factory) -> Path:
 
 def _injected(case: Path) -> np.ndarray:
     """The ``[k, j, i]`` voxels of the arteries the phantom's injection filled (the oracle)."""
-    from geopose.phantom import labels as L
-    from geopose.phantom.dsa import INJECTIONS
+    from geopose.phantom.dsa import injected_arteries
 
     labels = load_cta(case / "labels.nii.gz", check_hu=False).array
-    return np.isin(labels, L.with_intracranial(INJECTIONS[json.loads((case / "truth.json").read_text())["injection"]]))
+    return injected_arteries(labels, json.loads((case / "truth.json").read_text())["injection"])
 
 
 def test_the_opacified_vessels_read_near_the_truth_are_the_injected_ones(unilateral_case):
     """Read at the true pose, the kept vessel voxels are mostly the injected arteries (against a fifth
     of all vessels), most of those are kept; read 60 mm off, too few pass and all vessels stay."""
-    from geopose.register.opacified import read_opacified
+    from geopose.register.opacified import read_opacified, vessel_shift_mm
 
     truth, runs, prep, _ = _prepared(unilateral_case)
     rig = nominal_poses(runs)
@@ -472,10 +470,15 @@ def test_the_opacified_vessels_read_near_the_truth_are_the_injected_ones(unilate
     base = injected[vessels].mean()
     precision, recall = injected[kept].mean(), kept[injected & vessels].mean()
     assert base < 0.3 and precision > 0.6 and recall > 0.5, (base, precision, recall)
+    np.testing.assert_array_equal(selection.volume.mask("vessels"), kept)
+    # How far a run's pose places the kept vessels from where they were read: a 10 mm shift is 10 mm.
     far = X.copy()
-    far[:3, 3] += [60.0, 0.0, 60.0]
+    far[:3, 3] += [6.0, 0.0, 8.0]
+    assert vessel_shift_mm(prep.volume, selection, X) == pytest.approx(0.0, abs=1e-9)
+    assert vessel_shift_mm(prep.volume, selection, far) == pytest.approx(10.0, abs=1e-6)
+    far[:3, 3] += [54.0, 0.0, 52.0]
     missed = read_opacified(prep.volume, far, rig, views)
-    assert not missed.applied and missed.keep.sum() == vessels.sum()
+    assert not missed.applied and missed.keep.sum() == vessels.sum() and missed.volume is None
     assert read_opacified(prep.volume, X, rig, [(k, np.zeros_like(v), d) for k, v, d in views]) is None
 
 

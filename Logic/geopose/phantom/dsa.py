@@ -34,8 +34,8 @@ from . import labels as L
 from .subject import Subject
 
 __all__ = [
-    "Acquisition", "ImagedHead", "SyntheticDSA", "INJECTIONS", "sample_acquisition", "sample_biplane", "table_tilt", "dsa_renderer",
-    "simulate_dsa",
+    "Acquisition", "ImagedHead", "SyntheticDSA", "INJECTIONS", "injected_arteries", "sample_acquisition", "sample_biplane",
+    "table_tilt", "dsa_renderer", "simulate_dsa",
 ]
 
 #: Detector matrices (pixels square) seen clinically (870 to 1920) and their weights.
@@ -150,6 +150,13 @@ class SyntheticDSA:
     carotids: dict[str, np.ndarray]
     pose: np.ndarray
     injection: str
+
+
+def injected_arteries(labels: np.ndarray, injection: str) -> np.ndarray:
+    """Bool mask of the artery labels (``labels.py``, intracranial parts included) ``injection`` fills."""
+    if injection not in INJECTIONS:
+        raise ValueError(f"unknown injection {injection!r}; choose one of {sorted(INJECTIONS)}")
+    return np.isin(labels, L.with_intracranial(INJECTIONS[injection]))
 
 
 def dsa_renderer(subject: Subject, injection: str, render_px: int = 256) -> DRR:

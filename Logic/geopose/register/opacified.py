@@ -35,7 +35,8 @@ __all__ = ["VesselSelection", "read_opacified", "vessel_shift_mm"]
 class VesselSelection:
     """The vessel voxels kept (``keep``, ``[k, j, i]`` bool on the CTA grid), out of ``vessel_voxels``;
     where it was read (``start`` name, TTO ``iteration``, the patient pose ``(4, 4)``); ``applied``:
-    False when too few passed (``OPACIFIED_MIN_FRACTION``) and all vessels stay in the objective."""
+    False when too few passed (``OPACIFIED_MIN_FRACTION``) and all vessels stay in the objective;
+    ``volume``: the CTA's render volume whose vessel channel holds the kept voxels alone (when applied)."""
 
     keep: np.ndarray
     vessel_voxels: int
@@ -44,6 +45,7 @@ class VesselSelection:
     start: str
     iteration: int
     patient_pose: np.ndarray
+    volume: RenderVolume | None = None
 
     @property
     def kept_fraction(self) -> float:
@@ -103,4 +105,4 @@ def read_opacified(
     keep = np.zeros(vessels.shape, dtype=bool)
     keep[tuple(kji[passed if applied else slice(None)].T)] = True
     return VesselSelection(keep, len(kji), int(passed.sum()) if applied else len(kji), bool(applied), start, iteration,
-                           np.asarray(patient, dtype=np.float64))
+                           np.asarray(patient, dtype=np.float64), volume.with_vessels(keep) if applied else None)

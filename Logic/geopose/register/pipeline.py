@@ -320,8 +320,7 @@ def register_case(
             # The finalists compared by one objective: the opacified vessels alone, when they were read.
             selection = next((r.vessel_selection for r in registration.tto_runs.values() if r.vessel_selection), None)
             registration.vessel_selection = selection
-            judge = renderer if selection is None else make_renderer(case.volume.with_vessels(selection.keep),
-                                                                     renderer.engine, device)
+            judge = renderer if selection is None else make_renderer(selection.volume, renderer.engine, device)
             registration.tto_objective = {name: _pair_objective(judge, run.poses, case)
                                           for name, run in registration.tto_runs.items() if run.stopped_at is None}
             registration.chosen_start = chosen_result(registration.tto_objective)

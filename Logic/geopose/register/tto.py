@@ -478,7 +478,7 @@ def _restrict_to_opacified(images: _Images, runs: Mapping[str, _Run], leader: _R
     selection = read_opacified(images.renderer.volume, X, rig, views, start=name, iteration=it)
     if selection is None or not selection.applied:
         return selection
-    restricted = images.rebound(TorchRenderer(images.renderer.volume.with_vessels(selection.keep), images.renderer.device))
+    restricted = images.rebound(TorchRenderer(selection.volume, images.renderer.device))
     for run in runs.values():
         if vessel_shift_mm(images.renderer.volume, selection, run.patient_at(it)) <= C.OPACIFIED_NEAR_MM:
             run.images = restricted
