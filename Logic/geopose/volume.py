@@ -54,6 +54,12 @@ class Volume:
     def centred_to_ras(self) -> np.ndarray:
         return centred_to_patient(self.ijk_to_ras, self.shape_ijk, "RAS")
 
+    def centred_points(self, kji: np.ndarray) -> np.ndarray:
+        """Voxel centres ``(N, 3)`` (centred frame, mm) of array indices ``kji`` ``(N, 3)`` (``[k, j, i]`` order)."""
+        kji = np.asarray(kji)
+        ijk1 = np.column_stack((kji[:, ::-1].astype(np.float64), np.ones(len(kji))))
+        return (ijk1 @ self.ijk_to_centred.T)[:, :3]
+
     @property
     def extent_mm(self) -> np.ndarray:
         """Physical size along i, j, k (mm), edge to edge."""

@@ -59,17 +59,10 @@ class VesselSelection:
                 "threshold": C.OPACIFIED_THRESHOLD}
 
 
-def _vessel_points_mm(volume: RenderVolume, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The ``[k, j, i]`` indices of the voxels ``keep`` and their centres ``(N, 3)`` (centred CTA frame, mm)."""
-    kji = np.argwhere(keep)
-    ijk1 = np.c_[kji[:, ::-1].astype(np.float64), np.ones(len(kji))]
-    return kji, (ijk1 @ volume.cta.ijk_to_centred.T)[:, :3]
-
-
 def vessel_shift_mm(volume: RenderVolume, selection: VesselSelection, patient: np.ndarray) -> float:
     """Mean distance (mm) the kept vessels lie, in the isocentre frame, at patient pose ``patient`` from
     where they lay at the pose the selection was read at."""
-    _, points = _vessel_points_mm(volume, selection.keep)
+    points = volume.cta.centred_points(np.argwhere(selection.keep))
     if not len(points):
         return 0.0
     moved = np.linalg.solve(np.asarray(patient, dtype=np.float64), np.c_[points, np.ones(len(points))].T)
@@ -93,7 +86,8 @@ def read_opacified(
     images = [(name, np.asarray(image, dtype=np.float64), det) for name, image, det in views if np.max(image) > 0]
     if vessels is None or not vessels.any() or not images:
         return None
-    kji, points_mm = _vessel_points_mm(volume, vessels)
+    kji = np.argwhere(vessels)
+    points_mm = volume.cta.centred_points(kji)
     shown = np.full(len(kji), np.inf)
     for name, image, det in images:
         smooth = gaussian_blur(image, (C.OPACIFIED_BLUR_PX, C.OPACIFIED_BLUR_PX))

@@ -466,25 +466,23 @@ def test_time_optimise(
 
 
 def _restrict_to_opacified(images: _Images, runs: Mapping[str, _Run], leader: _Run, name: str, rig: Mapping[str, np.ndarray],
-                           it: int) -> VesselSelection | None:
+                           it: int) -> None:
     """Read the opacified vessels (``opacified.read_opacified``) at the patient pose ``leader`` (start
     ``name``) reached at iteration ``it``; each of ``runs`` whose pose there places the vessels within
     ``OPACIFIED_NEAR_MM`` of it renders the vessel channel from them alone from now on, its best pose
     so far scored again with that objective, and holds the selection (:attr:`TTOResult.vessel_selection`)."""
     views = [(v.name, v.vessels, v.detector) for v in images.views if images.vessel_term[v.name]]
     if not views:
-        return None
-    X = leader.patient_at(it)
-    selection = read_opacified(images.renderer.volume, X, rig, views, start=name, iteration=it)
+        return
+    selection = read_opacified(images.renderer.volume, leader.patient_at(it), rig, views, start=name, iteration=it)
     if selection is None or not selection.applied:
-        return selection
+        return
     restricted = images.rebound(TorchRenderer(selection.volume, images.renderer.device))
     for run in runs.values():
         if vessel_shift_mm(images.renderer.volume, selection, run.patient_at(it)) <= C.OPACIFIED_NEAR_MM:
             run.images = restricted
             run.rescore_best()
             run.result.vessel_selection = selection
-    return selection
 
 
 def test_time_optimise_starts(

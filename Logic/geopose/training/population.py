@@ -63,8 +63,7 @@ def subject_from_volumes(name: str, cta: Volume, cranium: np.ndarray, vessels: n
     kji = np.argwhere(vessels)
     rng = np.random.default_rng(seed)
     pick = kji[rng.choice(len(kji), size=FIDUCIALS, replace=len(kji) < FIDUCIALS)]
-    ijk1 = np.column_stack((pick[:, ::-1], np.ones(len(pick)))).astype(float)
-    fiducials = torch.as_tensor((ijk1 @ cta.ijk_to_centred.T)[:, :3], dtype=torch.float32)
+    fiducials = torch.as_tensor(cta.centred_points(pick), dtype=torch.float32)
     return TrainingSubject(name, channels, cta.ijk_to_centred, fiducials)
 
 
