@@ -18,11 +18,12 @@ from typing import Mapping
 import numpy as np
 
 from ..dsa import DSARun
-from ..geometry.detector import AP_REORIENT
-from ..geometry.poses import axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles
+from ..geometry.detector import AP_REORIENT, Detector
+from ..geometry.poses import (axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles,
+                              project_points)
 
 __all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "common_axis",
-           "turned_about", "axis_disagreement_mm"]
+           "turned_about", "moved_by", "valley_turn", "axis_disagreement_mm"]
 
 
 @dataclass(frozen=True)
@@ -103,6 +104,43 @@ def turned_about(X: np.ndarray, axis: np.ndarray, angle_rad: float) -> np.ndarra
     out = np.array(X, dtype=np.float64)
     out[:3, :3] = axis_angle_to_matrix(np.asarray(axis, dtype=np.float64) * angle_rad) @ out[:3, :3]
     return out
+
+
+def moved_by(X: np.ndarray, rotation_rad: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
+    """The patient pose ``X`` turned by the axis-angle ``rotation_rad`` (CTA frame, through the
+    isocentre) and its isocentre shifted by ``shift_mm``: the TTO's parameters of a patient pose."""
+    out = np.array(X, dtype=np.float64)
+    out[:3, :3] = axis_angle_to_matrix(np.asarray(rotation_rad, dtype=np.float64)) @ out[:3, :3]
+    out[:3, 3] += np.asarray(shift_mm, dtype=np.float64)
+    return out
+
+
+def valley_turn(
+    X: np.ndarray, nominal: Mapping[str, np.ndarray], detectors: Mapping[str, Detector], points_mm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The patient motion, per radian of turn about the common axis (:func:`common_axis`), that moves
+    the projections of ``points_mm`` ``(N, 3)`` (CTA frame) in the views' ``detectors`` least:
+    ``(rotation (3,) rad/rad, shift (3,) mm/rad)`` for :func:`moved_by`, the rotation's part along
+    the axis 1. The turn alone shifts the views' images, which the other five parameters
+    partly undo (least squares on the pixel motion, linearised at ``X``); the objective is flat
+    along this direction rather than along the bare turn. None without a common axis or points."""
+    axis = common_axis({k: X for k in nominal}, nominal)
+    points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    if axis is None or not len(points):
+        return None
+    others = np.linalg.svd(axis[None])[2][1:]  # two unit vectors normal to the axis
+    basis = np.zeros((6, 6))
+    basis[:3, 0], basis[:3, 1:3], basis[3:, 3:] = axis, others.T, np.eye(3)
+
+    def pixels(d: np.ndarray) -> np.ndarray:
+        Y = moved_by(X, d[:3], d[3:])
+        return np.concatenate([project_points(Y @ nominal[k], detectors[k], points)[0].ravel() for k in nominal])
+
+    eps = 1e-5
+    J = np.stack([(pixels(eps * b) - pixels(-eps * b)) / (2 * eps) for b in basis.T], axis=1)
+    rest, *_ = np.linalg.lstsq(J[:, 1:], -J[:, 0], rcond=None)
+    d = basis @ np.r_[1.0, rest]
+    return d[:3], d[3:]
 
 
 def axis_disagreement_mm(estimates: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray]) -> float:

@@ -19,7 +19,9 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
-#: 6: ``registration.tto_vessel_selection`` (the opacified vessels the TTO's vessel term kept after its
+#: 7: each of ``tto_axis_searches`` adds ``rotation_per_rad`` and ``shift_mm_per_rad``: the direction it
+#: searched along (the turn about the common axis with the other parameters' compensation,
+#: ``biplane.valley_turn``). 6: ``registration.tto_vessel_selection`` (the opacified vessels the TTO's vessel term kept after its
 #: coarse steps: voxels kept of all, where it was read, the runs that kept them; ``register/opacified.py``),
 #: null without one.
 #: 5: ``registration.tto_ranking_loss`` and ``tto_stopped_at`` (the TTO's tournament of starts: each
@@ -30,7 +32,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 

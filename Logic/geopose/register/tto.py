@@ -39,7 +39,7 @@ from .. import contract as C
 from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
-from .biplane import common_axis, patient_pose, view_poses
+from .biplane import common_axis, patient_pose, valley_turn, view_poses
 from .objective import Objective, combine
 from .opacified import VesselSelection, read_opacified, vessel_shift_mm
 from .progress import Monitor
@@ -58,6 +58,8 @@ TTO_CHANNELS = ("total", "cranium", "vessels")
 #: axis, which the objective does see over a few degrees; the common-axis search
 #: (:class:`TTOSchedule`) corrects it (docs/tto_schedule.md).
 ROTATION_PRIOR_PER_RAD2 = 10.0
+#: Most points (vessel voxel centres) the common-axis search projects to find its valley.
+VALLEY_POINTS = 3000
 
 
 @dataclass
@@ -80,10 +82,11 @@ class TTOSchedule:
     patient pose, of its rotation (rad) and isocentre shift (mm); ``paper``: the published
     per-view schedule instead (max 1e-2 on Euler angles and translation / 200).
 
-    ``axis_search_at``: fractions of the steps after which a patient pose is turned about the
-    common axis (the rotation both views see worst, which the prior holds) to the objective's
-    best along it: turns of ``-step, 0, +step`` (deg) scored at full size, the vertex of the
-    parabola through them (within twice the step) scored too, the best kept (docs/tto_schedule.md).
+    ``axis_search_at``: fractions of the steps after which a patient pose is moved along the
+    common-axis valley (the turn about the axis both views see worst, which the prior holds,
+    with the compensation of the other parameters: :func:`.biplane.valley_turn`) to the
+    objective's best along it: turns of ``-step, 0, +step`` (deg) scored at full size, the vertex
+    of the parabola through them (within twice the step) scored too, the best kept (docs/tto_schedule.md).
     ``rotation_prior_per_rad2``: the weight of the prior on that turn (:data:`ROTATION_PRIOR_PER_RAD2`).
     ``finalists``: with several starts (:func:`test_time_optimise_starts`), how many run on after
     the coarse steps.
@@ -94,7 +97,7 @@ class TTOSchedule:
     rotation_lr_rad: float = 0.02
     translation_lr_mm: float = 4.0
     paper: bool = False
-    axis_search_at: tuple[float, ...] = (0.6, 0.8)
+    axis_search_at: tuple[float, ...] = (0.6, 0.7, 0.8, 0.9)
     axis_search_step_deg: float = 4.0
     rotation_prior_per_rad2: float = ROTATION_PRIOR_PER_RAD2
     finalists: int = 2
@@ -116,7 +119,7 @@ PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True, axis_search_at=())
 class TTOResult:
     """Best pose per view, its mNCC and iteration; the patient pose when one was optimised;
     ``trace``: per iteration the loss, the image size and per view the mNCC, Dice loss and pose;
-    ``axis_searches``: per common-axis search its iteration, turns (deg), losses and choice;
+    ``axis_searches``: per common-axis search its iteration, turns (deg), losses, choice and direction;
     ``stopped_at``: the iteration a start of :func:`test_time_optimise_starts` stopped at when it
     was not among the finalists (None: it ran to the end); ``ranking_loss``: the full-size loss
     at the first full-size iteration it was ranked by there (None without a ranking);
@@ -232,13 +235,17 @@ class _PatientParams:
         w2 = (d ** 2).sum() if self.prior_axis is None else (d @ self.prior_axis) ** 2
         return self.prior_per_rad2 * w2
 
-    def turned(self, angle_rad: float):
-        """``w`` (rad, a new tensor) after a further turn of ``angle_rad`` about the common axis
-        (through the isocentre)."""
+    def move_along(self, start: tuple, direction: tuple[np.ndarray, np.ndarray], angle_rad: float) -> None:
+        """Set ``w, v`` to the ``start`` ``(w, v)`` moved by ``angle_rad`` along ``direction`` (rotation
+        rad/rad, shift mm/rad: :func:`.biplane.valley_turn`), as :func:`.biplane.moved_by` does."""
+        import torch
+
         from ..geometry.rigid import axis_angle_to_matrix, matrix_to_axis_angle
 
-        R = axis_angle_to_matrix(self.prior_axis * angle_rad) @ axis_angle_to_matrix(self.w.detach())
-        return matrix_to_axis_angle(R)
+        w0, v0 = start
+        rotation, shift = (torch.as_tensor(np.asarray(a) * angle_rad, dtype=w0.dtype, device=w0.device) for a in direction)
+        self.w.copy_(matrix_to_axis_angle(axis_angle_to_matrix(rotation) @ axis_angle_to_matrix(w0)))
+        self.v.copy_(v0 + shift)
 
     def groups(self, schedule: TTOSchedule) -> list[dict]:
         return [{"params": [self.w], "lr": schedule.rotation_lr_rad}, {"params": [self.v], "lr": schedule.translation_lr_mm}]
@@ -374,18 +381,33 @@ class _Run:
                 self._consider("patient", sum(float(v[0]) for v in losses.values()) + prior,
                                {k: float(v[1]) for k, v in losses.items()}, poses, it, prior)
 
+    def _valley_points(self) -> np.ndarray:
+        """At most ``VALLEY_POINTS`` voxel centres (mm, centred CTA frame) of the vessels the objective
+        renders (the cranium without vessels), evenly strided."""
+        volume = self.images.renderer.volume
+        mask = volume.mask("vessels")
+        if mask is None or not mask.any():
+            mask = volume.mask("cranium")
+        kji = np.argwhere(mask) if mask is not None else np.zeros((0, 3), dtype=int)
+        return volume.cta.centred_points(kji[:: max(1, -(-len(kji) // VALLEY_POINTS))])
+
     def _axis_search(self, it: int) -> None:
-        """Turn the patient about the common axis to the objective's best (``TTOSchedule``), the
-        other parameters held, and centre the rotation prior there."""
+        """Move the patient along the common-axis valley (:func:`.biplane.valley_turn`: the turn
+        about the common axis with the other parameters' compensation) to the objective's best
+        (``TTOSchedule``), and centre the rotation prior there."""
         import torch
 
         params, step = self.params, self.schedule.axis_search_step_deg
-        w0 = params.w.detach().clone()
+        start = (params.w.detach().clone(), params.v.detach().clone())
+        X = params.patient().detach().cpu().numpy()
+        rig = {k: A.cpu().numpy() for k, A in params.rig.items()}
+        direction = valley_turn(X, rig, {k: self.images.levels[k, "full"][4] for k in self.names}, self._valley_points())
+        if direction is None:  # no points to project: the bare turn
+            direction = (params.prior_axis.cpu().numpy(), np.zeros(3))
 
         def score(deg: float) -> float:
-            params.w.copy_(params.turned(math.radians(deg)))
+            params.move_along(start, direction, math.radians(deg))
             _, losses, _ = self._evaluate("full")
-            params.w.copy_(w0)
             return sum(v[0] for v in losses.values())
 
         with torch.no_grad():
@@ -396,9 +418,11 @@ class _Run:
                 turns.append(float(np.clip(step * (scores[0] - scores[2]) / (2 * curvature), -2 * step, 2 * step)))
                 scores.append(score(turns[-1]))
             chosen = turns[int(np.argmin(scores))]
-            params.w.copy_(params.turned(math.radians(chosen)))
+            params.move_along(start, direction, math.radians(chosen))
             params.w_ref.copy_(params.w.detach())
-        self.result.axis_searches.append({"iteration": it, "turn_deg": turns, "loss": scores, "chosen_deg": chosen})
+        self.result.axis_searches.append({
+            "iteration": it, "turn_deg": turns, "loss": scores, "chosen_deg": chosen,
+            "rotation_per_rad": np.asarray(direction[0]).tolist(), "shift_mm_per_rad": np.asarray(direction[1]).tolist()})
 
     def advance(self, until: int, monitor: Monitor) -> None:
         """Run iterations up to (not including) ``until`` (at most the last, ``n``): evaluate, record,
