@@ -172,6 +172,7 @@ class _Images:
         import torch
 
         self.renderer = renderer
+        self._valley_points: np.ndarray | None = None
         as_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=renderer.device)[None, None]  # noqa: E731
         self.levels = {}
         for v in self.views:
@@ -188,6 +189,19 @@ class _Images:
                 start = torch.as_tensor(v.pose, dtype=torch.float64, device=renderer.device)[None]
                 self.vessel_term[v.name] = self.objective.vessel_weight > 0 and bool(
                     drr(start, detector=det, channels=(self.channels[2],)).amax() > 0)
+
+    def valley_points(self) -> np.ndarray:
+        """At most ``VALLEY_POINTS`` voxel centres (mm, centred CTA frame) of the vessels the objective
+        renders (the cranium's without vessels), evenly strided: what the common-axis search keeps
+        still (:func:`.biplane.valley_turn`)."""
+        if self._valley_points is None:
+            volume = self.renderer.volume
+            mask = volume.mask("vessels")
+            if mask is None or not mask.any():
+                mask = volume.mask("cranium")
+            kji = np.argwhere(mask) if mask is not None else np.zeros((0, 3), dtype=int)
+            self._valley_points = volume.cta.centred_points(kji[:: max(1, -(-len(kji) // VALLEY_POINTS))])
+        return self._valley_points
 
     def loss(self, name: str, pose, size: str):
         """(loss, mNCC, Dice loss, vessel NCC or None) of view ``name`` at ``pose`` ``(1, 4, 4)``
@@ -381,16 +395,6 @@ class _Run:
                 self._consider("patient", sum(float(v[0]) for v in losses.values()) + prior,
                                {k: float(v[1]) for k, v in losses.items()}, poses, it, prior)
 
-    def _valley_points(self) -> np.ndarray:
-        """At most ``VALLEY_POINTS`` voxel centres (mm, centred CTA frame) of the vessels the objective
-        renders (the cranium without vessels), evenly strided."""
-        volume = self.images.renderer.volume
-        mask = volume.mask("vessels")
-        if mask is None or not mask.any():
-            mask = volume.mask("cranium")
-        kji = np.argwhere(mask) if mask is not None else np.zeros((0, 3), dtype=int)
-        return volume.cta.centred_points(kji[:: max(1, -(-len(kji) // VALLEY_POINTS))])
-
     def _axis_search(self, it: int) -> None:
         """Move the patient along the common-axis valley (:func:`.biplane.valley_turn`: the turn
         about the common axis with the other parameters' compensation) to the objective's best
@@ -401,7 +405,7 @@ class _Run:
         start = (params.w.detach().clone(), params.v.detach().clone())
         X = params.patient().detach().cpu().numpy()
         rig = {k: A.cpu().numpy() for k, A in params.rig.items()}
-        direction = valley_turn(X, rig, {k: self.images.levels[k, "full"][4] for k in self.names}, self._valley_points())
+        direction = valley_turn(X, rig, {k: self.images.levels[k, "full"][4] for k in self.names}, self.images.valley_points())
         if direction is None:  # no points to project: the bare turn
             direction = (params.prior_axis.cpu().numpy(), np.zeros(3))
 
