@@ -257,7 +257,8 @@ class _PatientParams:
         from ..geometry.rigid import axis_angle_to_matrix, matrix_to_axis_angle
 
         w0, v0 = start
-        rotation, shift = (torch.as_tensor(np.asarray(a) * angle_rad, dtype=w0.dtype, device=w0.device) for a in direction)
+        rotation, shift = (torch.as_tensor(np.asarray(a) * angle_rad, dtype=w0.dtype, device=w0.device)
+                           for a in direction)
         self.w.copy_(matrix_to_axis_angle(axis_angle_to_matrix(rotation) @ axis_angle_to_matrix(w0)))
         self.v.copy_(v0 + shift)
 
@@ -405,7 +406,8 @@ class _Run:
         start = (params.w.detach().clone(), params.v.detach().clone())
         X = params.patient().detach().cpu().numpy()
         rig = {k: A.cpu().numpy() for k, A in params.rig.items()}
-        direction = valley_turn(X, rig, {k: self.images.levels[k, "full"][4] for k in self.names}, self.images.valley_points())
+        detectors = {k: self.images.levels[k, "full"][4] for k in self.names}
+        direction = valley_turn(X, rig, detectors, self.images.valley_points())
         if direction is None:  # no points to project: the bare turn
             direction = (params.prior_axis.cpu().numpy(), np.zeros(3))
 
@@ -426,7 +428,8 @@ class _Run:
             params.w_ref.copy_(params.w.detach())
         self.result.axis_searches.append({
             "iteration": it, "turn_deg": turns, "loss": scores, "chosen_deg": chosen,
-            "rotation_per_rad": np.asarray(direction[0]).tolist(), "shift_mm_per_rad": np.asarray(direction[1]).tolist()})
+            "rotation_per_rad": np.asarray(direction[0]).tolist(),
+            "shift_mm_per_rad": np.asarray(direction[1]).tolist()})
 
     def advance(self, until: int, monitor: Monitor) -> None:
         """Run iterations up to (not including) ``until`` (at most the last, ``n``): evaluate, record,
