@@ -13,7 +13,6 @@ to show the reach.
 
 from __future__ import annotations
 
-import json
 import sys
 import tempfile
 import time
@@ -26,8 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from heldout import parse_heldout_args, publish  # noqa: E402
 
 from geopose.bench.cases import phantom_case  # noqa: E402
-from geopose.cta import load_cta  # noqa: E402
-from geopose.phantom.dsa import injected_arteries as injected_labels  # noqa: E402
+from geopose.phantom.cli import written_injected_arteries  # noqa: E402
 from geopose.geometry.poses import pose_from_params  # noqa: E402
 from geopose.register.biplane import nominal_poses  # noqa: E402
 from geopose.register.case import VIEW_KEYS, prepare_case  # noqa: E402
@@ -113,12 +111,6 @@ REACH = Objective(vessel_weight=0.75)
 ORACLE_ROW = "oracle: the CTA's vessels restricted to the injected arteries (phantom labels), every one compared"
 
 
-def injected_arteries(folder: Path) -> np.ndarray:
-    """``[k, j, i]`` uint8: the arteries phantom ``folder``'s injection filled (its labels and truth.json)."""
-    labels = load_cta(folder / "labels.nii.gz", check_hu=False).array
-    return injected_labels(labels, json.loads((folder / "truth.json").read_text())["injection"]).astype(np.uint8)
-
-
 def _perturbed(X: np.ndarray) -> np.ndarray:
     """The patient pose turned ~4.7 deg about the isocentre and shifted ~9.8 mm."""
     D = pose_from_params(np.radians([3.0, -3.0, 2.0]), np.zeros(3))
@@ -138,7 +130,7 @@ def main() -> int:
     for i, seed in enumerate(seeds):
         with tempfile.TemporaryDirectory() as tmp:
             case = phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm)
-            injected = injected_arteries(Path(tmp) / str(seed))
+            injected = written_injected_arteries(Path(tmp) / str(seed)).astype(np.uint8)
         prep = prepare_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels)
         renderer = TorchRenderer(prep.volume)
         rig = nominal_poses(case.runs)

@@ -24,7 +24,7 @@ from geopose.geometry.poses import matrix_to_axis_angle
 from geopose.metrics import mncc
 from geopose.nets import ModelSet
 from geopose.options import RegistrationOptions
-from geopose.phantom.cli import write_phantom
+from geopose.phantom.cli import write_phantom, written_injected_arteries
 from geopose.register import (
     PAPER_SCHEDULE,
     ConsoleProgress,
@@ -447,14 +447,6 @@ def unilateral_case(tmp_path_factory) -> Path:
     return out
 
 
-def _injected(case: Path) -> np.ndarray:
-    """The ``[k, j, i]`` voxels of the arteries the phantom's injection filled (the oracle)."""
-    from geopose.phantom.dsa import injected_arteries
-
-    labels = load_cta(case / "labels.nii.gz", check_hu=False).array
-    return injected_arteries(labels, json.loads((case / "truth.json").read_text())["injection"])
-
-
 def test_the_opacified_vessels_read_near_the_truth_are_the_injected_ones(unilateral_case):
     """Read at the true pose, the kept vessel voxels are mostly the injected arteries (against a fifth
     of all vessels), most of those are kept; read 60 mm off, too few pass and all vessels stay."""
@@ -463,7 +455,7 @@ def test_the_opacified_vessels_read_near_the_truth_are_the_injected_ones(unilate
     truth, runs, prep, _ = _prepared(unilateral_case)
     rig = nominal_poses(runs)
     views = [(k, prep.views[k].tto_vessels, prep.views[k].tto_detector) for k in rig]
-    vessels, injected = prep.volume.mask("vessels"), _injected(unilateral_case)
+    vessels, injected = prep.volume.mask("vessels"), written_injected_arteries(unilateral_case)
     X = truth.poses["pa"] @ invert(rig["pa"])
     selection = read_opacified(prep.volume, X, rig, views)
     kept = selection.keep

@@ -12,11 +12,11 @@ import SimpleITK as sitk
 
 from ..dsa import write_dsa_dicom
 from ..volume import Volume
-from .dsa import INJECTIONS, dsa_renderer, sample_biplane, simulate_dsa
+from .dsa import INJECTIONS, dsa_renderer, injected_arteries, sample_biplane, simulate_dsa
 from .subject import make_subject
 from ..errors import InputError
 
-__all__ = ["register", "write_phantom"]
+__all__ = ["register", "write_phantom", "written_injected_arteries"]
 
 OUTPUT_FILES = ("cta.nii.gz", "labels.nii.gz", "centerlines.json", "truth.json", "dsa_pa.dcm", "dsa_lat.dcm")
 
@@ -75,6 +75,13 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
     timings["write_s"] = time.perf_counter() - t2
     timings["total_s"] = time.perf_counter() - t0
     return timings
+
+
+def written_injected_arteries(folder: Path) -> np.ndarray:
+    """``[k, j, i]`` bool on the CTA grid: the arteries the runs of a phantom folder written by
+    :func:`write_phantom` show filled (its labels and ``truth.json``'s injection; an oracle)."""
+    labels = sitk.GetArrayFromImage(sitk.ReadImage(str(Path(folder) / "labels.nii.gz")))
+    return injected_arteries(labels, json.loads((Path(folder) / "truth.json").read_text())["injection"])
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -101,9 +101,7 @@ def common_axis(poses: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarra
 def turned_about(X: np.ndarray, axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """The patient pose ``X`` ``(4, 4)`` turned by ``angle_rad`` about the unit ``axis`` (CTA frame)
     through the isocentre (``X[:3, 3]`` stays)."""
-    out = np.array(X, dtype=np.float64)
-    out[:3, :3] = axis_angle_to_matrix(np.asarray(axis, dtype=np.float64) * angle_rad) @ out[:3, :3]
-    return out
+    return moved_by(X, np.asarray(axis, dtype=np.float64) * angle_rad, np.zeros(3))
 
 
 def moved_by(X: np.ndarray, rotation_rad: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
