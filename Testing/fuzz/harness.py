@@ -17,6 +17,7 @@ import multiprocessing
 import multiprocessing.connection as mp_connection
 import os
 import resource
+import signal
 import threading
 import time
 import traceback
@@ -140,6 +141,8 @@ def unlimited_memory():
 def _worker(conn, case: Callable[[int], tuple[str, str, str, str]], describe: Callable[[int], tuple[str, str]],
             memory_bytes: int) -> None:
     faulthandler.disable()  # a crash is reported by the parent, not dumped by the worker
+    # No core file: writing one of a worker this size can outlast the timeout, and the crash would read as a hang.
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
     _limit_memory(memory_bytes)
     while True:
         index = conn.recv()
@@ -224,6 +227,8 @@ def run_cases(
                 if outcome == "hang":
                     proc.kill()
                 proc.join()
+                if outcome == "hang" and proc.exitcode not in (-signal.SIGKILL, None):
+                    outcome = "crash"  # it was already dying of its own signal when the timeout came
                 target, mutation = describe(index)
                 result = CaseResult(index, target, mutation, outcome, f"exit code {proc.exitcode}", time.perf_counter() - start)
                 conn.close()
