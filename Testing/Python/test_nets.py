@@ -43,7 +43,7 @@ from geopose.nets import (
 )
 from geopose.nets.decoding import decode_init_pose
 from geopose.nets.manifest import verify_models
-from geopose.nets.predictors import OnnxInit, OnnxRefine, TorchInit, TorchRefine, _model_input
+from geopose.nets.predictors import ModelInput, OnnxInit, OnnxRefine, TorchInit, TorchRefine, _model_input
 from geopose.resources import default_models_dir
 from geopose.training.poses import init_pose_tensor, residual_tensor
 from geopose.nets.checkpoint import (
@@ -430,10 +430,34 @@ def test_onnx_parity_with_torch(tmp_path):
     assert not np.array_equal(D_h, refine_onnx.predict_residual(target, render, view))
     with pytest.raises(InputError, match="not GeoPose-Refine|GeoPose-Init network"):
         OnnxRefine(tmp_path / "init.onnx")
-    with pytest.raises(ValueError, match=r"\(B, 1, 64, 64\) batch"):
+    with pytest.raises(ValueError, match="32 x 32 px but the network takes 64 x 64"):
         init_onnx.predict(np.random.rand(1, 1, 32, 32))
     with pytest.raises(ValueError, match="pairs"):
         refine_onnx.predict_residual(target, render[:2], view)
+
+
+def test_stacked_refine_compares_the_pair_as_channels_and_takes_larger_images_block_averaged():
+    torch.manual_seed(1)
+    stacked = NetConfig("refine", BackboneConfig(depth=18, base_width=8, in_channels=2), pairing="stacked")
+    net = _randomise_bn(RefineNet(stacked))
+    assert net.net.backbone.conv1.weight.shape[1] == 2
+    assert net.net.fusion[0].in_features == stacked.backbone.feature_dim  # one pooled vector, not five
+    g = np.random.default_rng(3)
+    target, render = g.random((2, 1, 128, 128)), g.random((2, 1, 128, 128))
+    halve = lambda a: a.reshape(2, 1, 64, 2, 64, 2).mean(axis=(3, 5))  # noqa: E731
+    at_64 = TorchRefine(net, image_px=64).predict_residual(target, render, 1)
+    np.testing.assert_allclose(at_64, TorchRefine(net).predict_residual(halve(target), halve(render), 1), atol=1e-6)
+    swapped = TorchRefine(net, image_px=64).predict_residual(render, target, 1)
+    assert not np.allclose(at_64, swapped, atol=1e-4)  # target and render play different parts
+    graph = OnnxRefine(export_onnx(net, image_px=64))
+    assert graph.image_px == 64
+    np.testing.assert_allclose(graph.predict_residual(target, render, 1), at_64, atol=1e-4)
+    with pytest.raises(ValueError, match="whole multiple"):
+        graph.predict_residual(target[..., :100, :100], render[..., :100, :100], 1)
+    with pytest.raises(ValueError, match="2-channel"):
+        NetConfig("refine", SMALL, pairing="stacked")
+    with pytest.raises(ValueError, match="Refine only"):
+        NetConfig("init", BackboneConfig(depth=18, base_width=8, in_channels=2), pairing="stacked")
 
 
 def ship_small_models(folder: Path, render_px: int | None = None) -> Path:
@@ -496,7 +520,11 @@ def test_the_shipped_models_declare_their_input():
     assert models.render_px == declared["render_px"] == 96
     assert models.clip_percentiles == tuple(declared["clip_percentiles"]) == (2.0, 98.0)
     assert set(models.files) == {"init", "refine"} and all(f["path"].endswith(".onnx") for f in models.files.values())
-    assert _model_input({"input": {"render_px": 128}}) == (128, C.MAP_CLIP_PERCENTILES) == (128, (25.0, 75.0))
+    assert _model_input({"input": {"render_px": 128}}) == ModelInput(128, (25.0, 75.0), 256)
+    assert C.MAP_CLIP_PERCENTILES == (25.0, 75.0)
+    assert _model_input({"training": {"config": {"image_px": 128}}}).image_px == 128
+    with pytest.raises(InputError, match="block-averaged"):
+        _model_input({"input": {"image_px": 100}})
 
 
 def test_cli_reports_bad_checkpoint_without_traceback(tmp_path, monkeypatch, capsys):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import os
@@ -16,7 +17,7 @@ import torch.multiprocessing as mp
 from geopose.contract import VIEW_LAT_MINUS, VIEW_LAT_PLUS, VIEW_PA
 from geopose.geometry.rigid import axis_angle_to_matrix
 from geopose.metrics import double_geodesic_mm
-from geopose.nets import load_model, load_models, read_model_header
+from geopose.nets import build_model, load_model, load_models, read_model_header
 from geopose.nets.predictors import TorchInit
 from geopose.training.poses import init_pose_tensor, residual_tensor
 from geopose.phantom import labels as L
@@ -29,7 +30,8 @@ from geopose.errors import InputError
 from geopose.training.manifest import model_entry, verify_manifest, write_manifest
 from geopose.training.population import FIDUCIALS, load_population, save_population, subject_from_volumes
 from geopose.training.poses import sample_init_poses, sample_refine_perturbations, sample_views
-from geopose.training.trainer import CHECKPOINT_NAME, LOG_NAME, TrainConfig, train
+from geopose.training import cli as training_cli
+from geopose.training.trainer import CHECKPOINT_NAME, LOG_NAME, TrainConfig, init_encoder_from, train
 from geopose.volume import Volume
 
 REPO = Path(__file__).resolve().parents[2]
@@ -234,6 +236,32 @@ def test_refine_training_starts_from_the_init_encoder(tiny_population, tmp_path,
     assert len(_rows(tmp_path / "refine" / LOG_NAME)) == 1
     with pytest.raises(ValueError, match="init-model"):
         TrainConfig("refine", steps=1)
+
+
+def test_a_stacked_refine_at_its_own_input_size_trains_ships_and_runs(tiny_population, tmp_path, capsys):
+    init_path = train(TrainConfig("init", steps=1, **TINY), tiny_population, tmp_path / "init", progress=False)
+    config = TrainConfig("refine", steps=1, init_model=str(init_path), calibration_samples=0, pairing="stacked",
+                         **{**TINY, "image_px": 32})
+    net = build_model(config.net_config())
+    init_encoder_from(net, load_model(init_path))
+    w = load_model(init_path).net.conv1.weight
+    assert torch.equal(net.net.backbone.conv1.weight, torch.cat((w, -w), dim=1))  # starts out seeing differences
+    refine_path = train(config, tiny_population, tmp_path / "refine", progress=False)
+    models = tmp_path / "models"
+    args = argparse.Namespace(init=init_path, refine=refine_path, metrics=None, models_dir=models, note=None)
+    assert training_cli._ship(args) == 0
+    manifest = json.loads((models / "manifest.json").read_text())["models"]
+    assert manifest["refine"]["input"]["image_px"] == 32 and manifest["init"]["input"]["image_px"] == 64
+    assert manifest["refine"]["input"]["pairing"] == "stacked"
+    image = np.random.default_rng(4).random((2, 1, 256, 256)).astype(np.float32)
+    residuals = {}
+    for runtime in ("torch", "onnxruntime"):
+        loaded = load_models(models, runtime=runtime)
+        assert loaded.files["refine"]["image_px"] == 32 and loaded.files["init"]["image_px"] == 64
+        residuals[runtime] = loaded.refine.predict_residual(image, image[..., ::-1], np.array([1, 2]))
+    np.testing.assert_allclose(residuals["torch"], residuals["onnxruntime"], atol=2e-2)  # fp16 graph weights
+    with pytest.raises(ValueError, match="divisor of 256"):
+        TrainConfig("init", steps=1, **{**TINY, "image_px": 100})
 
 
 def test_a_run_can_start_from_a_model_of_the_same_architecture(tiny_population, tmp_path):

@@ -18,8 +18,12 @@ from .resnet import BackboneConfig, ResNetEncoder
 
 #: Hidden width of the Refine fusion layer of the published model.
 REFINE_FUSION_DIM = 512
-#: Features per image pair in the Refine fusion: [a, b, a-b, |a-b|, a*b].
+#: Features per image pair in the siamese Refine fusion: [a, b, a-b, |a-b|, a*b].
 REFINE_PAIR_TERMS = 5
+#: How Refine sees its image pair: ``siamese`` (the published layout: one encoder per image, features
+#: fused) or ``stacked`` (ours: target and render as the two channels of one encoder, compared pixel by
+#: pixel from the first layer on, at half the cost of two encoder passes).
+REFINE_PAIRINGS = ("siamese", "stacked")
 #: Outputs of both pose heads: 3 rotation + 3 translation parameters.
 POSE_PARAMS = 6
 MODEL_KINDS = ("init", "refine")
@@ -33,10 +37,17 @@ class NetConfig:
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     embedding_dim: int = VIEW_EMBEDDING_DIM
     fusion_dim: int = REFINE_FUSION_DIM
+    pairing: str = "siamese"
 
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
             raise ValueError(f"network kind must be one of {MODEL_KINDS}, got {self.kind!r}")
+        if self.pairing not in REFINE_PAIRINGS or (self.kind == "init" and self.pairing != "siamese"):
+            raise ValueError(f"pairing must be one of {REFINE_PAIRINGS} ('stacked' for Refine only), got {self.pairing!r}")
+        channels = 2 if self.pairing == "stacked" else 1
+        if self.backbone.in_channels != channels:
+            raise ValueError(f"a {self.pairing} {self.kind} network takes {channels}-channel images, but its backbone "
+                             f"has {self.backbone.in_channels} input channels")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -125,13 +136,13 @@ class InitNet(nn.Module):
 
 
 class RefineBody(nn.Module):
-    """Siamese encoder, pair fusion, view embedding and pose-residual head."""
+    """Encoder (siamese or stacked pair), fusion, view embedding and pose-residual head."""
 
     def __init__(self, config: NetConfig) -> None:
         super().__init__()
-        features = config.backbone.feature_dim
+        features = config.backbone.feature_dim * (REFINE_PAIR_TERMS if config.pairing == "siamese" else 1)
         self.backbone = ResNetEncoder(config.backbone)
-        self.fusion = nn.Sequential(nn.Linear(REFINE_PAIR_TERMS * features, config.fusion_dim), nn.ReLU(inplace=True))
+        self.fusion = nn.Sequential(nn.Linear(features, config.fusion_dim), nn.ReLU(inplace=True))
         self.view_emb = nn.Embedding(NUM_VIEWS, config.embedding_dim)
         self.head = nn.Linear(config.fusion_dim + config.embedding_dim, POSE_PARAMS)
 
@@ -139,8 +150,9 @@ class RefineBody(nn.Module):
 class RefineNet(nn.Module):
     """GeoPose-Refine: (target, current render, view) -> raw residual ``(B, 6)``.
 
-    Both images are ``(B, 1, H, W)`` min-max in [0, 1]; the encoder is shared and
-    runs on the two images separately (separate batch-norm statistics in training).
+    Both images are ``(B, 1, H, W)`` min-max in [0, 1]. Siamese (published): the encoder is
+    shared and runs on the two images separately (separate batch-norm statistics in training);
+    stacked: it runs once on the two images as channels (target first).
     """
 
     def __init__(self, config: NetConfig = PUBLISHED_REFINE_CONFIG) -> None:
@@ -155,9 +167,12 @@ class RefineNet(nn.Module):
         _check_images("render", render)
         if target.shape != render.shape:
             raise ValueError(f"target {tuple(target.shape)} and render {tuple(render.shape)} must have the same shape")
-        a = self.net.backbone(target)
-        b = self.net.backbone(render)
-        fused = self.net.fusion(torch.cat((a, b, a - b, (a - b).abs(), a * b), dim=1))
+        if self.config.pairing == "stacked":
+            fused = self.net.fusion(self.net.backbone(torch.cat((target, render), dim=1)))
+        else:
+            a = self.net.backbone(target)
+            b = self.net.backbone(render)
+            fused = self.net.fusion(torch.cat((a, b, a - b, (a - b).abs(), a * b), dim=1))
         view = _view_tensor(view, target.shape[0], target.device)
         return self.net.head(torch.cat((fused, self.net.view_emb(view)), dim=1))
 

@@ -53,21 +53,28 @@ class RefinePredictor(Protocol):
         ...
 
 
-def _images(name: str, image: np.ndarray, shape: tuple[int, ...] | None) -> np.ndarray:
-    """``image`` min-max normalised, float32, checked to be ``(B,) + shape`` (``(B, 1, H, W)`` when None)."""
+def _images(name: str, image: np.ndarray, image_px: int | None) -> np.ndarray:
+    """``image`` ``(B, 1, H, W)`` as the network takes it: block-averaged down to ``image_px`` square
+    (the network's input size; None: any size), min-max normalised, float32."""
     image = np.asarray(image)
-    if image.ndim != 4 or (tuple(image.shape[1:]) != shape if shape else image.shape[1] != 1):
-        want = ", ".join(map(str, shape)) if shape else "1, H, W"
-        raise ValueError(f"{name} must be a (B, {want}) batch, got shape {image.shape}; "
+    if image.ndim != 4 or image.shape[1] != 1:
+        raise ValueError(f"{name} must be a (B, 1, H, W) batch, got shape {image.shape}; "
                          "render or resample onto the model detector")
+    if image_px is not None and image.shape[2:] != (image_px, image_px):
+        factor = image.shape[2] // image_px
+        if image.shape[2] != image.shape[3] or factor < 1 or image.shape[2] != factor * image_px:
+            raise ValueError(f"{name} is {image.shape[2]} x {image.shape[3]} px but the network takes {image_px} x "
+                             f"{image_px}: give square images of a whole multiple of that size")
+        image = image.reshape(image.shape[0], 1, image_px, factor, image_px, factor).mean(axis=(3, 5))
     return normalize_minmax(image.astype(np.float32))
 
 
 class _Init:
     """GeoPose-Init: the view rule and decoding around :meth:`_raw`, which runs the network.
-    ``image_shape``: ``(1, H, W)`` the network takes (None: any size, e.g. a torch module)."""
+    ``image_px``: the square input size the network takes; larger model-detector images are
+    block-averaged to it (None: any size, e.g. a torch module outside a models folder)."""
 
-    image_shape: tuple[int, ...] | None = None
+    image_px: int | None = None
 
     def predict(
         self, image: np.ndarray, is_lateral: np.ndarray | bool | None = None, mirror: bool = True,
@@ -82,7 +89,7 @@ class _Init:
         one pass of 2B images): the lateral side is then decided more reliably than by the
         published single-image rule; poses are unaffected.
         """
-        image = _images("image", image, self.image_shape)
+        image = _images("image", image, self.image_px)
         batch = len(image)
         raw_all, logits = self._raw(np.concatenate((image, image[..., ::-1])) if mirror else image)
         if mirror:
@@ -96,13 +103,13 @@ class _Init:
 
 
 class _Refine:
-    """GeoPose-Refine: decoding around :meth:`_raw`, which runs the network (``image_shape`` as for Init)."""
+    """GeoPose-Refine: decoding around :meth:`_raw`, which runs the network (``image_px`` as for Init)."""
 
-    image_shape: tuple[int, ...] | None = None
+    image_px: int | None = None
 
     def predict_residual(self, target: np.ndarray, render: np.ndarray, view: np.ndarray | int) -> np.ndarray:
         """Residual ``D`` ``(B, 4, 4)`` for (target, current render) pairs; update ``T_new = inverse(D) @ T``."""
-        target, render = _images("target", target, self.image_shape), _images("render", render, self.image_shape)
+        target, render = _images("target", target, self.image_px), _images("render", render, self.image_px)
         if target.shape != render.shape:
             raise ValueError(f"target {target.shape} and render {render.shape} must be pairs of the same shape")
         return residual_from_raw(self._raw(target, render, view_labels(view, len(target))))
@@ -129,9 +136,10 @@ def resolve_torch_device(device: str) -> "Any":
 class TorchInit(_Init):
     """Init on a torch :class:`~geopose.nets.models.InitNet` (eval mode) on its device."""
 
-    def __init__(self, module: Any) -> None:
+    def __init__(self, module: Any, image_px: int | None = None) -> None:
         self.module = module.eval()
         self.device = next(module.parameters()).device
+        self.image_px = image_px
 
     def _raw(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         import torch
@@ -144,9 +152,10 @@ class TorchInit(_Init):
 class TorchRefine(_Refine):
     """Refine on a torch :class:`~geopose.nets.models.RefineNet` (eval mode) on its device."""
 
-    def __init__(self, module: Any) -> None:
+    def __init__(self, module: Any, image_px: int | None = None) -> None:
         self.module = module.eval()
         self.device = next(module.parameters()).device
+        self.image_px = image_px
 
     def _raw(self, target: np.ndarray, render: np.ndarray, view: np.ndarray) -> np.ndarray:
         import torch
@@ -156,12 +165,14 @@ class TorchRefine(_Refine):
             return self.module(as_t(target), as_t(render), as_t(view)).double().cpu().numpy()
 
 
-def torch_predictors(init_module: Any, refine_module: Any) -> tuple[TorchInit, TorchRefine]:
-    """Predictors of two torch modules (e.g. from training), checked for their kinds."""
+def torch_predictors(init_module: Any, refine_module: Any, image_px: dict[str, int] | None = None) -> tuple[TorchInit, TorchRefine]:
+    """Predictors of two torch modules (e.g. from training), checked for their kinds; ``image_px``:
+    each network's input size by kind (default: any size)."""
     for kind, module in (("init", init_module), ("refine", refine_module)):
         if getattr(getattr(module, "config", None), "kind", None) != kind:
             raise ValueError(f"expected a GeoPose {kind} network, got {type(module).__name__}")
-    return TorchInit(init_module), TorchRefine(refine_module)
+    sizes = image_px or {}
+    return TorchInit(init_module, sizes.get("init")), TorchRefine(refine_module, sizes.get("refine"))
 
 
 # ------------------------------------------------------------------ onnxruntime
@@ -191,7 +202,7 @@ class _Session:
             raise InputError(f"the ONNX graph given as GeoPose-{self.kind.title()} is "
                              f"{'a GeoPose-' + kind.title() + ' network' if kind else 'not a GeoPose graph'}; "
                              "export it with geopose.nets.export_onnx")
-        self.image_shape = tuple(self.session.get_inputs()[0].shape[1:])
+        self.image_px = int(self.session.get_inputs()[0].shape[-1])
 
 
 class OnnxInit(_Init, _Session):
@@ -253,14 +264,29 @@ class ModelSet:
                 "clip_percentiles": list(self.clip_percentiles), **self.files}
 
 
-def _model_input(entry: dict) -> tuple[int, tuple[float, float]]:
-    """(render_px, clip percentiles) a manifest entry declares; older entries: the training config,
-    else the model detector size and docs/conventions.md 5."""
+@dataclass(frozen=True)
+class ModelInput:
+    """What one network takes, as its manifest entry (or model file) declares: ``render_px``, the
+    pixels its DRRs are rendered at on the model detector's field of view; ``clip_percentiles``, the
+    MAP clip; ``image_px``, its own input size (the 256-px model images are block-averaged to it)."""
+
+    render_px: int = C.MODEL_DETECTOR_PX
+    clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
+    image_px: int = C.MODEL_DETECTOR_PX
+
+
+def _model_input(entry: dict) -> ModelInput:
+    """The :class:`ModelInput` a manifest entry or model-file metadata declares; older entries: the
+    training config, else the model detector size and docs/conventions.md 5."""
     inputs = entry.get("input", {}) if isinstance(entry.get("input"), dict) else {}
     config = entry.get("training", {}).get("config", {}) if isinstance(entry.get("training"), dict) else {}
     render_px = int(inputs.get("render_px", config.get("render_px", C.MODEL_DETECTOR_PX)))
     clip = inputs.get("clip_percentiles", C.MAP_CLIP_PERCENTILES)
-    return render_px, (float(clip[0]), float(clip[1]))
+    image_px = int(inputs.get("image_px", config.get("image_px", C.MODEL_DETECTOR_PX)))
+    if image_px < 1 or C.MODEL_DETECTOR_PX % image_px:
+        raise InputError(f"a network declares an input of {image_px} px, which the {C.MODEL_DETECTOR_PX}-px model detector "
+                         "cannot be block-averaged to: re-ship the model with a divisor of that size")
+    return ModelInput(render_px, (float(clip[0]), float(clip[1])), image_px)
 
 
 def load_models(
@@ -288,23 +314,27 @@ def load_models(
 
         files = {k: {"path": str(p), "sha256": "unverified (no manifest)", "format": fmt} for k, p in paths.items()}
         inputs = {k: _model_input(read_model_header(p).get("metadata", {})) for k, p in paths.items()}
-    if inputs["init"] != inputs["refine"]:
-        raise InputError(f"{folder}: Init and Refine declare different inputs ({inputs}); ship a matching pair")
+    shared = {k: (v.render_px, v.clip_percentiles) for k, v in inputs.items()}
+    if shared["init"] != shared["refine"]:
+        raise InputError(f"{folder}: Init and Refine declare different DRR sizes or MAP clips ({shared}); ship a matching pair")
+    sizes = {k: v.image_px for k, v in inputs.items()}
+    for k in files:
+        files[k]["image_px"] = sizes[k]
     if runtime == "torch" or fmt == "pt":
         from .model_io import load_model
 
         dev = resolve_torch_device(device) if runtime == "torch" else resolve_torch_device("cpu")
         modules = {k: load_model(paths[k], dev) for k in ("init", "refine")}
         if runtime == "torch":
-            init, refine = torch_predictors(modules["init"], modules["refine"])
+            init, refine = torch_predictors(modules["init"], modules["refine"], sizes)
             device = str(dev)
         else:
             from .onnx_export import export_onnx
 
-            init, refine = onnx_predictors({k: export_onnx(m) for k, m in modules.items()}, use_cuda=device.startswith("cuda"))
+            init, refine = onnx_predictors({k: export_onnx(m, image_px=sizes[k]) for k, m in modules.items()},
+                                           use_cuda=device.startswith("cuda"))
     else:
         init, refine = onnx_predictors(paths, use_cuda=device.startswith("cuda"))
     if runtime == "onnxruntime":
         device = "cuda" if device.startswith("cuda") else "cpu"
-    render_px, clip = inputs["init"]
-    return ModelSet(init, refine, render_px, clip, runtime, device, files)
+    return ModelSet(init, refine, inputs["init"].render_px, inputs["init"].clip_percentiles, runtime, device, files)

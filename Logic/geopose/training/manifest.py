@@ -36,10 +36,11 @@ def model_entry(path: str | os.PathLike, **extra) -> dict:
         "architecture": header["architecture"],
         "storage_dtype": header["storage_dtype"],
         "input": {
-            "image_px": MODEL_DETECTOR_PX,
+            "image_px": int(config.get("image_px", MODEL_DETECTOR_PX)),
             "pixel_spacing_mm": MODEL_PIXEL_SPACING_MM,
             "sdd_mm": MODEL_SDD_MM,
             "channels": 1,
+            "pairing": header["architecture"].get("pairing", "siamese"),
             "normalisation": "per-image min-max to [0, 1]",
             "render_px": int(config.get("render_px", MODEL_DETECTOR_PX)),
             "clip_percentiles": list(config.get("input_clip", MAP_CLIP_PERCENTILES)),

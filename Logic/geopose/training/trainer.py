@@ -23,6 +23,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+from ..contract import MODEL_DETECTOR_PX
 from ..errors import InputError
 from ..images import normalize_minmax
 from ..nets import BackboneConfig, InitNet, NetConfig, RefineNet, build_model, load_model, save_model
@@ -46,8 +47,9 @@ class TrainConfig:
     """Everything that defines a training run (recorded in checkpoints and model files).
 
     ``steps`` counts optimiser steps of ``batch_size x accumulation`` samples per process.
-    ``render_px`` is the rendered detector resolution (resized to ``image_px``).
-    ``bank_size`` > 0 pre-renders that many samples per process and draws from them.
+    ``render_px`` is the rendered detector resolution (resized to ``image_px``, the network's input
+    size on the model detector's field of view). ``bank_size`` > 0 pre-renders that many samples
+    per process and draws from them. ``pairing``: how Refine sees its image pair (``nets.models``).
     """
 
     kind: str
@@ -74,12 +76,16 @@ class TrainConfig:
     dsa_look_p: float = R.DSA_LOOK_P
     #: A model file of the same kind and architecture whose weights start the run (fine-tuning).
     start_from: str | None = None
+    pairing: str = "siamese"
 
     def __post_init__(self) -> None:
         if self.kind not in ("init", "refine"):
             raise ValueError(f"training kind must be 'init' or 'refine', got {self.kind!r}")
         if self.steps < 1 or self.batch_size < 1 or self.accumulation < 0:
             raise ValueError("steps and batch_size must be positive and accumulation >= 0")
+        if self.image_px < 32 or MODEL_DETECTOR_PX % self.image_px:
+            raise ValueError(f"image_px must be a divisor of {MODEL_DETECTOR_PX} of at least 32 (the model detector is "
+                             f"downsampled to it at inference), got {self.image_px}")
         if self.kind == "refine" and self.init_model is None and self.calibration_samples > 0:
             raise ValueError("Refine training needs --init-model (encoder initialisation and calibration)")
 
@@ -90,7 +96,9 @@ class TrainConfig:
         return R.INIT_ACCUMULATION if self.kind == "init" else R.REFINE_ACCUMULATION
 
     def net_config(self) -> NetConfig:
-        return NetConfig(self.kind, BackboneConfig(depth=self.depth, base_width=self.base_width))
+        channels = 2 if self.pairing == "stacked" else 1
+        return NetConfig(self.kind, BackboneConfig(depth=self.depth, base_width=self.base_width, in_channels=channels),
+                         pairing=self.pairing)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -159,8 +167,12 @@ def _lr_lambda(total: int):
 
 
 def init_encoder_from(refine: RefineNet, init: InitNet) -> None:
-    """Copy the Init trunk (everything but its heads) into Refine's shared encoder."""
+    """Copy the Init trunk (everything but its heads) into Refine's encoder. A stacked encoder's first
+    layer gets Init's filters on the target channel and their negatives on the render channel, so it
+    starts out seeing where the two images differ."""
     state = {k: v for k, v in init.net.state_dict().items() if not k.startswith("fc.")}
+    if refine.config.pairing == "stacked":
+        state["conv1.weight"] = torch.cat((state["conv1.weight"], -state["conv1.weight"]), dim=1)
     refine.net.backbone.load_state_dict(state, strict=True)
 
 
