@@ -260,6 +260,13 @@ def test_a_stacked_refine_at_its_own_input_size_trains_ships_and_runs(tiny_popul
         assert loaded.files["refine"]["image_px"] == 32 and loaded.files["init"]["image_px"] == 64
         residuals[runtime] = loaded.refine.predict_residual(image, image[..., ::-1], np.array([1, 2]))
     np.testing.assert_allclose(residuals["torch"], residuals["onnxruntime"], atol=2e-2)  # fp16 graph weights
+    # Shipping one network keeps the other's entry (and file) as it was.
+    init_entry = json.loads((models / "manifest.json").read_text())["models"]["init"]
+    assert training_cli._ship(argparse.Namespace(**{**vars(args), "init": None})) == 0
+    assert json.loads((models / "manifest.json").read_text())["models"]["init"] == init_entry
+    assert set(verify_manifest(models)) == {"init", "refine"}
+    with pytest.raises(InputError, match="--init, --refine or both"):
+        training_cli._ship(argparse.Namespace(**{**vars(args), "init": None, "refine": None}))
     with pytest.raises(ValueError, match="divisor of 256"):
         TrainConfig("init", steps=1, **{**TINY, "image_px": 100})
 

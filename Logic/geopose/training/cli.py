@@ -16,7 +16,8 @@ from pathlib import Path
 from . import recipe as R
 from ..contract import MODEL_DETECTOR_PX
 from .losses import LossWeights
-from .manifest import file_entry, model_entry, write_manifest
+from .manifest import file_entry, model_entry, verify_manifest, write_manifest
+from ..nets.manifest import read_manifest
 from .population import folder_population, load_population, phantom_population, save_population
 from .trainer import TrainConfig, train
 from ..errors import InputError
@@ -104,8 +105,16 @@ def _ship(args: argparse.Namespace) -> int:
 
     models_dir = Path(args.models_dir)
     metrics = json.loads(Path(args.metrics).read_text()) if args.metrics else {}
+    given = {kind: source for kind, source in (("init", args.init), ("refine", args.refine)) if source is not None}
+    if not given:
+        raise InputError("give --init, --refine or both: the networks to ship")
     entries = {}
-    for kind, source in (("init", args.init), ("refine", args.refine)):
+    if len(given) == 1:
+        # The other network stays as shipped: its entry (verified first) is kept as it is.
+        kept = "refine" if "init" in given else "init"
+        verify_manifest(models_dir)
+        entries[kept] = read_manifest(models_dir)["models"][kept]
+    for kind, source in given.items():
         header = read_model_header(source)
         module = load_model(source)
         if module.config.kind != kind:
@@ -115,9 +124,9 @@ def _ship(args: argparse.Namespace) -> int:
         graph = export_onnx(load_model(target), models_dir / f"geopose_{kind}.onnx", image_px=image_px, weights="float16")
         entries[kind] = model_entry(target, onnx=file_entry(graph), training=header["metadata"].get("training", {}))
     notes = {"validation": metrics, "note": args.note} if args.note else {"validation": metrics}
-    write_manifest(models_dir, entries, notes)
-    total = sum(e["bytes"] + e["onnx"]["bytes"] for e in entries.values())
-    _say(f"shipped {len(entries)} models ({total / 1e6:.1f} MB) with manifest to {models_dir}")
+    write_manifest(models_dir, {kind: entries[kind] for kind in ("init", "refine")}, notes)
+    total = sum(entries[kind]["bytes"] + entries[kind]["onnx"]["bytes"] for kind in given)
+    _say(f"shipped {' and '.join(given)} ({total / 1e6:.1f} MB) with manifest to {models_dir}")
     return 0
 
 
@@ -182,8 +191,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=None)
     p.set_defaults(func=_evaluate)
     p = sub.add_parser("ship", help="write fp16 model files (torch and ONNX) and manifest.json into a models folder")
-    p.add_argument("--init", required=True, type=Path)
-    p.add_argument("--refine", required=True, type=Path)
+    p.add_argument("--init", type=Path, default=None, help="Init model file (default: keep the folder's shipped Init)")
+    p.add_argument("--refine", type=Path, default=None, help="Refine model file (default: keep the folder's shipped Refine)")
     p.add_argument("--metrics", type=Path, default=None, help="JSON from `geopose train evaluate`")
     p.add_argument("--models-dir", type=Path, default=Path("Resources/Models"))
     p.add_argument("--note", default=None, help="free text recorded in the manifest")
