@@ -1,5 +1,6 @@
 """Benchmark cases with known poses: held-out phantom subjects (written and read
-back through the real file formats) and a real head CT with simulated runs.
+back through the real file formats) and a real head CT with simulated runs, as it is
+(no contrast) or made into a CTA with a phantom's arteries (``phantom.real_head``).
 
 Seeds of benchmark phantoms must be disjoint from the shipped models' training
 seeds (``Resources/Models/manifest.json``); :func:`training_seeds` reads them.
@@ -17,7 +18,8 @@ from ..cta import cranium_mask_from_cta, load_cta
 from ..dsa import DSARun, read_dsa
 from ..phantom import labels as L
 from ..phantom.cli import write_phantom
-from ..phantom.dsa import sample_acquisition, simulate_dsa, table_tilt
+from ..phantom.dsa import INJECTIONS, dsa_renderer, sample_acquisition, simulate_dsa, table_tilt
+from ..phantom.real_head import with_arteries
 from ..dsa.run import LAT_ROLE, PA_ROLE
 from ..geometry import Detector
 from ..register.evaluate import load_truth
@@ -37,6 +39,8 @@ HEADSQ_HU_OFFSET = -1024.0
 HEADSQ_HEADER_FIX = np.diag([-1.0, 1.0, -1.0, 1.0])
 #: Matrix cap (px) of the simulated runs: enough for the 256 px model input.
 BENCH_MATRIX_PX = 512
+#: Case-name suffix of a real head CT given a phantom's arteries.
+ARTERIES_SUFFIX = "+arteries"
 
 
 @dataclass
@@ -92,8 +96,12 @@ def phantom_case(seed: int, folder: Path, spacing_mm: float = 1.0) -> BenchCase:
 
 @dataclass
 class _RealHead:
+    """What ``simulate_dsa`` reads of a real head, and ``dsa_renderer`` (CTA and labels) with arteries."""
+
     seed: int
     centerlines: list[dict] = field(default_factory=list)
+    cta: Volume | None = None
+    labels: Volume | None = None
 
 
 def load_headsq(path: str | Path) -> Volume:
@@ -103,39 +111,62 @@ def load_headsq(path: str | Path) -> Volume:
     return Volume(raw.array, HEADSQ_HEADER_FIX @ raw.ijk_to_ras, dict(raw.metadata, header_fix="180 deg about A"))
 
 
-def real_head_case(name: str, cta: Volume, seed: int, notes: list[str]) -> BenchCase:
+def real_head_case(name: str, cta: Volume, seed: int, notes: list[str], *, arteries: bool = False) -> BenchCase:
     """A real head CT (HU, no contrast) with a PA + lateral run simulated from it at sampled
     clinical geometries, the head tilted on the angiography table as in the phantom world
     (``table_tilt``): the runs hold motion residue and noise only, so the measurable results
     are pose errors, NCC and the cranium silhouette. Its vessel segmentation is empty: neither
     the CT nor the runs show opacified vessels, so the registration has no vessel term (the
-    approximate mask of a non-contrast CT would hold dura and calcifications, compared with noise)."""
+    approximate mask of a non-contrast CT would hold dura and calcifications, compared with noise).
+
+    ``arteries``: the CT is first made a CTA with the arteries of phantom ``seed``
+    (:func:`~geopose.phantom.real_head.with_arteries`); its vessel segmentation is their mask, the
+    runs show those of an injection drawn from the seed as ``write_phantom`` draws it, and the ICA
+    centrelines give the carotid points (mPCD). The geometry is the plain case's of the same seed."""
     cranium = cranium_mask_from_cta(cta)
     rng = np.random.default_rng([seed, 7])
     k, j, i = np.nonzero(cranium.array)
     centroid = (cta.ijk_to_centred @ np.array([i.mean(), j.mean(), k.mean(), 1.0]))[:3]
     iso = centroid + rng.normal(0.0, 8.0, 3)
-    groups = {"cranium": [1], "early": [], "late": []}
-    drr = DRR.from_volume(cta, Detector.model().resized(256), cranium, groups)
+    if arteries:
+        cta, labels, lines = with_arteries(cta, seed, cranium=cranium)
+        injection = str(np.random.default_rng([seed, 1]).choice(sorted(INJECTIONS)))
+        head = _RealHead(seed, lines, cta, labels)
+        drr = dsa_renderer(head, injection)
+        vessels = labels.like(L.vessel_mask(labels.array).astype(np.uint8))
+        carotid = [c["points_mm"] for c in lines if c["label"] in (L.ICA_LEFT, L.ICA_RIGHT)]
+        fit = cta.metadata["arteries"]
+        notes = notes + [
+            f"{name}{ARTERIES_SUFFIX}: arteries of phantom seed {seed} fitted into the CT's cranial cavity (scales "
+            f"{', '.join(f'{v:.2f}' for v in fit['scales'])}, cavity rms {fit['cavity_rms_mm']:.1f} mm; neck shifted "
+            f"{np.linalg.norm(fit['neck_shift_mm']):.0f} mm onto the CT's spine), painted at {fit['vessel_hu']:.0f} HU "
+            f"and clipped to the field of view; runs with the {injection} injection; mPCD on their ICA centrelines"]
+        name = name + ARTERIES_SUFFIX
+    else:
+        head, injection = _RealHead(seed), "cca_left"  # simulate_dsa's default; these runs show no arteries
+        drr = DRR.from_volume(cta, Detector.model().resized(256), cranium, {"cranium": [1], "early": [], "late": []})
+        vessels = cta.like(np.zeros(cta.array.shape, np.uint8))
+        carotid = []
+        notes = notes + ["runs simulated from the CT itself (motion residue + noise, no arteries): no mPCD or clDice, "
+                         "no vessel term"]
     runs, poses = {}, {}
     table = table_tilt(rng)
     for key, role in (("pa", PA_ROLE), ("lat", LAT_ROLE)):
         acq = replace(sample_acquisition(rng, role), table_rotation=table)
-        sim = simulate_dsa(_RealHead(seed), acq, acq.pose(iso), rng, drr=drr, max_matrix_px=BENCH_MATRIX_PX)
+        sim = simulate_dsa(head, acq, acq.pose(iso), rng, injection=injection, drr=drr, max_matrix_px=BENCH_MATRIX_PX)
         runs[key], poses[key] = sim.run, sim.pose
-    notes = notes + ["runs simulated from the CT itself (motion residue + noise, no arteries): no mPCD or clDice, "
-                     "no vessel term"]
-    no_vessels = cta.like(np.zeros(cta.array.shape, np.uint8))
-    return BenchCase(f"{name}-{seed}", cta, cranium, no_vessels, runs, poses, None, notes)
+    carotid_points = np.concatenate(carotid) if carotid else None
+    return BenchCase(f"{name}-{seed}", cta, cranium, vessels, runs, poses, carotid_points, notes)
 
 
-def headsq_case(path: str | Path, seed: int = 0) -> BenchCase:
+def headsq_case(path: str | Path, seed: int = 0, *, arteries: bool = False) -> BenchCase:
     """The real head CT ``headsq`` (``quarter_sidecar.mhd``) with simulated runs (:func:`real_head_case`)."""
     return real_head_case("headsq", load_headsq(path), seed, [
-        "headsq: real CT without contrast, 3.2 x 3.2 x 1.5 mm, header turned 180 deg about A (it is upside down)"])
+        "headsq: real CT without contrast, 3.2 x 3.2 x 1.5 mm, header turned 180 deg about A (it is upside down)"],
+        arteries=arteries)
 
 
-def ge_head_case(folder: str | Path, seed: int = 0) -> BenchCase:
+def ge_head_case(folder: str | Path, seed: int = 0, *, arteries: bool = False) -> BenchCase:
     """The real GE head CT (a DICOM series with gantry tilt, resampled by ``load_cta``) with
     simulated runs (:func:`real_head_case`)."""
     cta = load_cta(folder)
@@ -143,4 +174,4 @@ def ge_head_case(folder: str | Path, seed: int = 0) -> BenchCase:
     how = (f"{geo['reason']} ({geo.get('gantry_tilt_deg', 0):.1f} deg), resampled onto {geo['slice_spacing_mm']:.2f} mm slices"
            if geo.get("resampled") else "regular slices")
     spacing = " x ".join(f"{s:.2f}" for s in cta.spacing_mm)
-    return real_head_case("ge-head", cta, seed, [f"GE head CT (DICOM, {spacing} mm): {how}"])
+    return real_head_case("ge-head", cta, seed, [f"GE head CT (DICOM, {spacing} mm): {how}"], arteries=arteries)

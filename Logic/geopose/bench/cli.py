@@ -1,4 +1,5 @@
-"""``geopose bench``: the paper's tables on held-out phantom subjects (and a real head CT).
+"""``geopose bench``: the paper's tables on held-out phantom subjects (and real head CTs, also
+given a phantom's arteries with ``--real-arteries``).
 
 Writes ``OUT/bench.md``, ``OUT/bench.json`` and ``OUT/tto_convergence.png``; each
 case's results are kept in ``OUT/cases/`` so an interrupted run resumes.
@@ -19,7 +20,7 @@ from ..errors import InputError
 from ..register.cli import options_from_args, registration_option_args
 from ..register.pipeline import resolve_engine
 from ..resources import default_models_dir
-from .cases import ge_head_case, headsq_case, phantom_case, training_seeds
+from .cases import ARTERIES_SUFFIX, ge_head_case, headsq_case, phantom_case, training_seeds
 from .report import convergence_figure, markdown, summarise
 from .run import DRIFT_ROW, INSTANT_ROW, LEARNED_ROW, NATIVE_TTO_ROW, BenchSettings, evaluate_case, row_names
 
@@ -41,6 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--headsq", help="the real head CT headsq (quarter_sidecar.mhd) for real-anatomy rows")
     p.add_argument("--ge-head", help="the real GE head CT (its DICOM series folder) for real-anatomy rows")
     p.add_argument("--real-seeds", type=int, default=3, help="simulated run pairs per real head")
+    p.add_argument("--real-arteries", action="store_true",
+                   help="also run each real head made a CTA with a phantom's arteries (cases NAME+arteries-SEED)")
     p.add_argument("--models", help="model folder with its manifest.json (default: the shipped models)")
     p.add_argument("--allow-unverified-models", action="store_true",
                    help="use a --models folder without manifest.json (its files are not checksum-verified)")
@@ -89,11 +92,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"[{i + 1}/{len(seeds)}] {tag}: {row} mPCD PA {mpcd[0]:.2f} / LAT {mpcd[1]:.2f} mm; "
                   f"elapsed {elapsed / 60:.1f} min", flush=True)
         real = []
+        variants = (False, True) if args.real_arteries else (False,)
         for name, source, make in (("headsq", args.headsq, headsq_case), ("ge-head", args.ge_head, ge_head_case)):
-            for seed in range(args.real_seeds if source else 0):
-                real.append(_load_or_run(out / "cases" / f"{name}-{seed}.json",
-                                         lambda: evaluate_case(make(source, seed), models, settings, long=False)))
-                print(f"real head {name} seed {seed} done; elapsed {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
+            for arteries in variants:
+                for seed in range(args.real_seeds if source else 0):
+                    tag = f"{name}{ARTERIES_SUFFIX if arteries else ''}-{seed}"
+                    real.append(_load_or_run(out / "cases" / f"{tag}.json", lambda: evaluate_case(
+                        make(source, seed, arteries=arteries), models, settings, long=False)))
+                    print(f"real head {tag} done; elapsed {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
     summary = summarise(cases, args.iterations)
     header = (
         f"# GeoPose benchmark on {len(cases)} held-out phantom subjects\n\n"
@@ -103,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
         f"long native TTO on {min(n_long, len(cases))} subjects.\n\n"
         f"Reproduce: `geopose bench --subjects {args.subjects} --long-subjects {n_long} --spacing-mm {args.spacing_mm:g} "
         f"--out {out}{' --headsq ' + args.headsq if args.headsq else ''}{' --ge-head ' + args.ge_head if args.ge_head else ''}"
-        f"{' --real-seeds ' + str(args.real_seeds) if real else ''}`"
+        f"{' --real-seeds ' + str(args.real_seeds) if real else ''}"
+        f"{' --real-arteries' if args.real_arteries else ''}`"
     )
     (out / "bench.md").write_text(markdown(summary, header, real, args.iterations))
     (out / "bench.json").write_text(json.dumps({"summary": summary, "cases": cases, "real_heads": real}, indent=1))

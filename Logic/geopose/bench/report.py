@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -156,21 +157,32 @@ REAL_HEAD_ROTATION_DEG = 3.0
 REAL_HEAD_SOURCE_MM = 15.0
 
 
+def _case_table(cases: list[dict], rows: list[str], cell: Callable[[dict], str]) -> list[str]:
+    """A Markdown table with a line per row and a column per case; ``cell`` writes one case's
+    ``{view: metrics}`` of a row, "-" where the case lacks the row."""
+    lines = ["| row | " + " | ".join(c["case"] for c in cases) + " |", "|---|" + "---:|" * len(cases)]
+    for row in rows:
+        cells = ["-" if row not in c["rows"] else cell(c["rows"][row]) for c in cases]
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def real_heads_markdown(real: list[dict], n: int) -> list[str]:
-    """Per real-head case, the rotation and source-position error of each view at each row, and
-    the targets: the final registration within the bounds and never worse than DICOM angles + TTO."""
+    """Per real-head case, the rotation and source-position error of each view at each row, the
+    carotid mPCD of the cases with arteries, and the targets: the final registration within the
+    bounds and never worse than DICOM angles + TTO."""
     rows = list(dict.fromkeys(r for c in real for r in c["rows"]))
     lines = ["", "## Real anatomy (real head CTs, runs simulated from them)", ""]
     lines += [f"- {note}" for note in dict.fromkeys(note for c in real for note in c["notes"])] + [""]
-    lines += ["Rotation error (deg) / source-position error (mm), PA; LAT.", "",
-              "| row | " + " | ".join(c["case"] for c in real) + " |", "|---|" + "---:|" * len(real)]
-    for row in rows:
-        cells = []
-        for c in real:
-            r = c["rows"].get(row)
-            cells.append("-" if r is None else "; ".join(
-                f"{r[v]['rotation_error_deg']:.1f} / {r[v]['source_distance_mm']:.0f}" for v in VIEWS))
-        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    lines += ["Rotation error (deg) / source-position error (mm), PA; LAT.", ""]
+    lines += _case_table(real, rows, lambda r: "; ".join(
+        f"{r[v]['rotation_error_deg']:.1f} / {r[v]['source_distance_mm']:.0f}" for v in VIEWS))
+    with_arteries = [c for c in real
+                     if any(r[v].get("mpcd_mm") is not None for r in c["rows"].values() for v in VIEWS)]
+    if with_arteries:
+        lines += ["", "Carotid mPCD (mm) of the cases with arteries, PA; LAT.", ""]
+        lines += _case_table(with_arteries, rows, lambda r: "; ".join(
+            "-" if r[v].get("mpcd_mm") is None else f"{r[v]['mpcd_mm']:.1f}" for v in VIEWS))
     final, native = LEARNED_ROW.format(n=n), NATIVE_TTO_ROW.format(n=n)
     views = [(c["rows"][final][v], c["rows"][native][v]) for c in real if final in c["rows"] for v in VIEWS]
     if views:
