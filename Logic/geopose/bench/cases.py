@@ -18,7 +18,7 @@ from ..cta import cranium_mask_from_cta, load_cta
 from ..dsa import DSARun, read_dsa
 from ..phantom import labels as L
 from ..phantom.cli import write_phantom
-from ..phantom.dsa import INJECTIONS, dsa_renderer, sample_acquisition, simulate_dsa, table_tilt
+from ..phantom.dsa import dsa_renderer, sample_acquisition, sample_injection, simulate_dsa, table_tilt
 from ..phantom.real_head import with_arteries
 from ..dsa.run import LAT_ROLE, PA_ROLE
 from ..geometry import Detector
@@ -130,7 +130,7 @@ def real_head_case(name: str, cta: Volume, seed: int, notes: list[str], *, arter
     iso = centroid + rng.normal(0.0, 8.0, 3)
     if arteries:
         cta, labels, lines = with_arteries(cta, seed, cranium=cranium)
-        injection = str(np.random.default_rng([seed, 1]).choice(sorted(INJECTIONS)))
+        injection = sample_injection(np.random.default_rng([seed, 1]))
         head = _RealHead(seed, lines, cta, labels)
         drr = dsa_renderer(head, injection)
         vessels = labels.like(L.vessel_mask(labels.array).astype(np.uint8))

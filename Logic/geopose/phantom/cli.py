@@ -12,7 +12,7 @@ import SimpleITK as sitk
 
 from ..dsa import write_dsa_dicom
 from ..volume import Volume
-from .dsa import INJECTIONS, dsa_renderer, injected_arteries, sample_biplane, simulate_dsa
+from .dsa import INJECTIONS, dsa_renderer, injected_arteries, sample_biplane, sample_injection, simulate_dsa
 from .subject import make_subject
 from ..errors import InputError
 
@@ -41,7 +41,7 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
     timings["volume_s"] = time.perf_counter() - t0
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng([seed, 1])
-    injection = injection or str(rng.choice(sorted(INJECTIONS)))
+    injection = injection or sample_injection(rng)
     t1 = time.perf_counter()
     drr = dsa_renderer(subject, injection)
     acqs, iso = sample_biplane(rng, subject)

@@ -35,6 +35,7 @@ from .subject import Subject
 
 __all__ = [
     "Acquisition", "ImagedHead", "SyntheticDSA", "INJECTIONS", "injected_arteries", "sample_acquisition", "sample_biplane",
+    "sample_injection",
     "table_tilt", "dsa_renderer", "simulate_dsa",
 ]
 
@@ -118,6 +119,11 @@ def sample_acquisition(rng: np.random.Generator, view_role: str) -> Acquisition:
     frames = int(np.clip(round(rng.lognormal(math.log(FRAMES_MEDIAN), 0.35)), *FRAMES_RANGE))
     frame_time = float(rng.choice([250.0, 1000.0 / 3.0, 500.0]))
     return Acquisition(role, CArmAngles(primary, secondary, sdd, sod), det, frames, frame_time)
+
+
+def sample_injection(rng: np.random.Generator) -> str:
+    """A catheter position (a key of ``INJECTIONS``), uniformly."""
+    return str(rng.choice(sorted(INJECTIONS)))
 
 
 def table_tilt(rng: np.random.Generator) -> np.ndarray:
