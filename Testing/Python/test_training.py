@@ -262,8 +262,11 @@ def test_a_stacked_refine_at_its_own_input_size_trains_ships_and_runs(tiny_popul
     np.testing.assert_allclose(residuals["torch"], residuals["onnxruntime"], atol=2e-2)  # fp16 graph weights
     # Shipping one network keeps the other's entry (and file) as it was.
     init_entry = json.loads((models / "manifest.json").read_text())["models"]["init"]
-    assert training_cli._ship(argparse.Namespace(**{**vars(args), "init": None})) == 0
-    assert json.loads((models / "manifest.json").read_text())["models"]["init"] == init_entry
+    assert training_cli._ship(argparse.Namespace(**{**vars(args), "note": "first ship"})) == 0
+    assert training_cli._ship(argparse.Namespace(**{**vars(args), "init": None, "note": "refine again"})) == 0
+    manifest = json.loads((models / "manifest.json").read_text())
+    assert manifest["models"]["init"] == init_entry
+    assert manifest["note"] == "refine again" and manifest["previous_ship"]["note"] == "first ship"
     assert set(verify_manifest(models)) == {"init", "refine"}
     with pytest.raises(InputError, match="--init, --refine or both"):
         training_cli._ship(argparse.Namespace(**{**vars(args), "init": None, "refine": None}))
@@ -337,8 +340,9 @@ def test_shipped_models_verify_and_load():
     # The shipped ONNX graphs compute what the torch files do.
     torch_models, onnx_models = load_models(MODELS, runtime="torch"), load_models(MODELS, runtime="onnxruntime")
     np.testing.assert_allclose(torch_models.init.predict(image)[2], onnx_models.init.predict(image)[2], atol=1e-2)
-    np.testing.assert_allclose(torch_models.refine.predict_residual(image, image[..., ::-1], 1),
-                               onnx_models.refine.predict_residual(image, image[..., ::-1], 1), atol=1e-2)
+    residuals = [m.refine.predict_residual(image, image[..., ::-1], 1) for m in (torch_models, onnx_models)]
+    np.testing.assert_allclose(residuals[0][:, :3, :3], residuals[1][:, :3, :3], atol=1e-2)
+    np.testing.assert_allclose(residuals[0][:, :3, 3], residuals[1][:, :3, 3], atol=0.05)  # mm
     assert "view_accuracy_with_metadata" in manifest["validation"]
 
 

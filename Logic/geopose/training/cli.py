@@ -108,12 +108,15 @@ def _ship(args: argparse.Namespace) -> int:
     given = {kind: source for kind, source in (("init", args.init), ("refine", args.refine)) if source is not None}
     if not given:
         raise InputError("give --init, --refine or both: the networks to ship")
-    entries = {}
+    entries, notes = {}, {"validation": metrics}
     if len(given) == 1:
-        # The other network stays as shipped: its entry (verified first) is kept as it is.
+        # The other network stays as shipped: its entry (verified first) is kept as it is, and the
+        # note and validation of the ship it came with are kept beside the new ones.
         kept = "refine" if "init" in given else "init"
         verify_manifest(models_dir)
-        entries[kept] = read_manifest(models_dir)["models"][kept]
+        previous = read_manifest(models_dir)
+        entries[kept] = previous["models"][kept]
+        notes["previous_ship"] = {k: previous[k] for k in ("note", "validation", "previous_ship") if previous.get(k)}
     for kind, source in given.items():
         header = read_model_header(source)
         module = load_model(source)
@@ -123,7 +126,8 @@ def _ship(args: argparse.Namespace) -> int:
         image_px = int(header["metadata"].get("training", {}).get("config", {}).get("image_px", MODEL_DETECTOR_PX))
         graph = export_onnx(load_model(target), models_dir / f"geopose_{kind}.onnx", image_px=image_px, weights="float16")
         entries[kind] = model_entry(target, onnx=file_entry(graph), training=header["metadata"].get("training", {}))
-    notes = {"validation": metrics, "note": args.note} if args.note else {"validation": metrics}
+    if args.note:
+        notes["note"] = args.note
     write_manifest(models_dir, {kind: entries[kind] for kind in ("init", "refine")}, notes)
     total = sum(entries[kind]["bytes"] + entries[kind]["onnx"]["bytes"] for kind in given)
     _say(f"shipped {' and '.join(given)} ({total / 1e6:.1f} MB) with manifest to {models_dir}")
