@@ -52,6 +52,8 @@ NCC_EPS: Final = 1e-5
 
 # ------------------------------------------------------ inference schedules
 GREEDY_MAX_PROPOSALS: Final = 5
+#: A rejected biplane Refine proposal is tried once more, its move scaled by this, before the loop stops.
+GREEDY_RETRY_FRACTION: Final = 0.5
 TTO_ITERATIONS: Final = 25
 TTO_MAX_LR: Final = 1e-2
 TTO_WARMUP_FRACTION: Final = 0.3

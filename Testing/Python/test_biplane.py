@@ -21,6 +21,7 @@ from geopose.register.biplane import (
     common_axis,
     fuse_patient_poses,
     moved_by,
+    part_way,
     patient_pose,
     turned_about,
     valley_turn,
@@ -184,29 +185,46 @@ class QueuedRefine:
         return np.asarray(self.residuals.pop(0))[None]
 
 
-def test_biplane_greedy_fuses_both_views_and_stops_at_the_first_worse_proposal():
+def test_biplane_greedy_fuses_both_views_retries_half_a_rejected_move_and_stops():
     renderer = blob_renderer()
     X_true = _patient()
     truth = view_poses(X_true, RIG)
     targets = {k: render_model_view(renderer, truth[k], RENDER_PX) for k in RIG}
     start = _patient((5.0, -1.0, 4.0), (-8.0, 10.0, 6.0))
+    overshoot = part_way(start, X_true, 3.0)  # twice the start's error, on the other side
+    halfway = part_way(start, X_true, 1.5)  # its half: half the start's error
     away = _patient((8.0, 0.0, 5.0), (25.0, 0.0, 0.0))
-    # Proposal 1 (from the start, PA then lateral): each view's residual to its true camera pose;
-    # proposal 2 (from the truth): residuals towards a pose far away.
-    oracle = QueuedRefine([(start @ RIG[k]) @ invert(truth[k]) for k in RIG]
-                          + [truth[k] @ invert(away @ RIG[k]) for k in RIG])
+
+    def towards(X, Y):  # each view's residual from patient pose X to Y
+        return [(X @ RIG[k]) @ invert(Y @ RIG[k]) for k in RIG]
+
+    # Proposal 1 overshoots (rejected), its half-size retry is accepted; proposal 2 answers the truth
+    # (accepted); proposal 3 heads far away: it and its retry are rejected and the loop stops.
+    oracle = QueuedRefine(towards(start, overshoot) + towards(halfway, X_true) + towards(X_true, away))
     traces = greedy_refine_biplane(renderer, targets, start, RIG, {"pa": C.VIEW_PA, "lat": C.VIEW_LAT_PLUS}, oracle,
                                    RENDER_PX, max_proposals=5)
     for key in RIG:
-        # Proposal 1 (both views answer the truth) is accepted, proposal 2 (worse) rejected and the loop stops.
-        assert [p.accepted for p in traces[key].proposals] == [True, False]
+        assert [p.accepted for p in traces[key].proposals] == [False, True, True, False, False]
+        np.testing.assert_allclose(traces[key].proposals[1].pose, halfway @ RIG[key], atol=1e-6)
+        np.testing.assert_allclose(traces[key].proposals[4].pose, part_way(X_true, away, 0.5) @ RIG[key], atol=1e-6)
         np.testing.assert_allclose(traces[key].pose, truth[key], atol=1e-6)
         best = mncc(targets[key][0, 0], targets[key][0, 0])  # the target against itself
         assert traces[key].mncc == pytest.approx(best, abs=1e-6) and traces[key].start_mncc < best - 0.05
-        # Every proposal is one patient pose: the views' proposed poses keep the rig's relative pose.
-    rel = invert(traces["pa"].proposals[1].pose) @ traces["lat"].proposals[1].pose
+    # Every proposal is one patient pose: the views' proposed poses keep the rig's relative pose.
+    rel = invert(traces["pa"].proposals[3].pose) @ traces["lat"].proposals[3].pose
     np.testing.assert_allclose(rel, invert(RIG["pa"]) @ RIG["lat"], atol=1e-6)
-    assert oracle.calls == 4
+    assert oracle.calls == 6
+
+
+def test_part_way_scales_the_turn_and_the_shift():
+    X, Y = _patient(), _patient((6.0, 1.0, -3.0), (10.0, -4.0, 2.0))
+    np.testing.assert_allclose(part_way(X, Y, 0.0), X, atol=1e-12)
+    np.testing.assert_allclose(part_way(X, Y, 1.0), Y, atol=1e-12)
+    half = part_way(X, Y, 0.5)
+    np.testing.assert_allclose(part_way(X, half, 2.0), Y, atol=1e-12)  # two halves make the whole
+    assert rotation_angle_rad(half[:3, :3] @ X[:3, :3].T) == pytest.approx(
+        0.5 * rotation_angle_rad(Y[:3, :3] @ X[:3, :3].T), rel=1e-9)
+    np.testing.assert_allclose(half[:3, 3], (X[:3, 3] + Y[:3, 3]) / 2, atol=1e-12)
 
 
 def test_pose_error_components_split_by_the_true_camera_axes():

@@ -23,7 +23,7 @@ from ..geometry.poses import (axis_angle_to_matrix, invert, matrix_to_axis_angle
                               project_points)
 
 __all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "common_axis",
-           "turned_about", "moved_by", "valley_turn", "axis_disagreement_mm"]
+           "turned_about", "moved_by", "part_way", "valley_turn", "axis_disagreement_mm"]
 
 
 @dataclass(frozen=True)
@@ -111,6 +111,14 @@ def moved_by(X: np.ndarray, rotation_rad: np.ndarray, shift_mm: np.ndarray) -> n
     out[:3, :3] = axis_angle_to_matrix(np.asarray(rotation_rad, dtype=np.float64)) @ out[:3, :3]
     out[:3, 3] += np.asarray(shift_mm, dtype=np.float64)
     return out
+
+
+def part_way(X: np.ndarray, Y: np.ndarray, fraction: float) -> np.ndarray:
+    """The patient pose ``fraction`` of the way from ``X`` to ``Y`` (both ``(4, 4)``): the rotation
+    between them (CTA frame, through ``X``'s isocentre) and the isocentre shift, both scaled."""
+    X, Y = np.asarray(X, dtype=np.float64), np.asarray(Y, dtype=np.float64)
+    turn = matrix_to_axis_angle(Y[:3, :3] @ X[:3, :3].T)
+    return moved_by(X, fraction * turn, fraction * (Y[:3, 3] - X[:3, 3]))
 
 
 def valley_turn(

@@ -3,8 +3,9 @@
 Each proposal is ``T_new = inverse(D) @ T_current`` with ``D`` the network's residual
 for (target, DRR at ``T_current``); it is accepted only if the multiscale NCC between
 target and render strictly increases, and the loop stops at the first rejection or
-after ``max_proposals``. Scores in float64 (a float32 mNCC of flat patches is off by
-about 0.005, enough to flip a decision). numpy poses; any renderer and Refine predictor.
+after ``max_proposals`` (one patient pose seen by both arms: a rejected move is first tried
+once at :data:`.contract.GREEDY_RETRY_FRACTION` of its size). Scores in float64 (a float32
+mNCC of flat patches is off by about 0.005, enough to flip a decision). numpy poses; any renderer and Refine predictor.
 :func:`greedy_refine` refines one view's camera pose (the paper); :func:`greedy_refine_biplane`
 one patient pose seen by both arms.
 """
@@ -20,7 +21,7 @@ from ..geometry.poses import invert
 from ..metrics.similarity import mncc
 from ..nets.predictors import RefinePredictor
 from ..render.renderer import Renderer
-from .biplane import Observability, fuse_patient_poses, patient_pose
+from .biplane import Observability, fuse_patient_poses, part_way, patient_pose
 from .calibration import render_model_view
 from .progress import Monitor
 from .results import Proposal, RefineTrace
@@ -70,12 +71,15 @@ def greedy_refine_biplane(
     max_proposals: int = C.GREEDY_MAX_PROPOSALS,
     observability: Observability = Observability(),
     monitor: Monitor | None = None,
+    retry_fraction: float = C.GREEDY_RETRY_FRACTION,
 ) -> dict[str, RefineTrace]:
     """The gated refinement of one patient pose ``X`` seen by both arms (``T_v = X @ rig[v]``).
 
     Each proposal applies every view's Refine residual to its own camera pose, reads the patient
     pose each implies and fuses them by what each view observes (:func:`.biplane.fuse_patient_poses`);
-    it is accepted only if the mean mNCC of the views strictly increases. Returns each view's
+    it is accepted only if the mean mNCC of the views strictly increases; a rejected move is tried
+    once more at ``retry_fraction`` of its size (rotation and isocentre shift scaled alike) before
+    the loop stops. Returns each view's
     trace (poses ``X @ A_v``, that view's mNCC, the joint accept flags)."""
     monitor = monitor or Monitor()
     keys = list(rig)
@@ -94,15 +98,18 @@ def greedy_refine_biplane(
         for k in keys:
             camera = invert(refine.predict_residual(targets[k], images[k], views[k])[0]) @ (X @ rig[k])
             implied[k] = patient_pose(camera, rig[k])
-        candidate = fuse_patient_poses(implied, rig, observability)
-        cand_images, cand_scores = render_all(candidate)
-        cand_score = float(np.mean(list(cand_scores.values())))
-        accepted = cand_score > score
-        for k in keys:
-            traces[k].proposals.append(Proposal(candidate @ rig[k], cand_scores[k], accepted))
-        if not accepted:
+        move = fuse_patient_poses(implied, rig, observability)
+        for candidate in (move, part_way(X, move, retry_fraction)):
+            cand_images, cand_scores = render_all(candidate)
+            cand_score = float(np.mean(list(cand_scores.values())))
+            accepted = cand_score > score
+            for k in keys:
+                traces[k].proposals.append(Proposal(candidate @ rig[k], cand_scores[k], accepted))
+            if accepted:
+                X, images, scores, score = candidate, cand_images, cand_scores, cand_score
+                break
+        else:
             break
-        X, images, scores, score = candidate, cand_images, cand_scores, cand_score
     for k in keys:
         traces[k].pose, traces[k].mncc = X @ rig[k], scores[k]
     monitor.step("refine", 1.0, f"{traces[keys[0]].accepted} of {len(traces[keys[0]].proposals)} proposals accepted")
