@@ -22,7 +22,8 @@ from geopose.dsa import read_dsa
 from geopose.geometry import invert, isopose, pose_from_params
 from geopose.geometry.poses import axis_angle_to_matrix, matrix_to_axis_angle
 from geopose.metrics import mncc
-from geopose.nets import ModelSet
+from geopose.metrics.measures import pose_error_components
+from geopose.nets import ModelSet, load_models
 from geopose.options import RegistrationOptions
 from geopose.phantom.cli import write_phantom, written_injected_arteries
 from geopose.register import (
@@ -239,10 +240,6 @@ def test_the_shipped_refine_corrects_in_plane_shift_and_rotation(phantom_case):
     6 deg about a random axis through the CTA centre and 10 mm: the in-plane shift and the rotation
     about the central ray both shrink (docs/training.md section 8: the Refine shipped before moved
     the shift but left the rotation, 2.67 -> 2.29 deg on validation phantoms)."""
-    from geopose.metrics.measures import pose_error_components
-    from geopose.nets import load_models
-    from geopose.register.calibration import render_model_view
-
     _, true, cta, runs = _read_phantom(phantom_case)
     models = load_models(runtime="torch")
     prep = prepare_case(cta, runs)

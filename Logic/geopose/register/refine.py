@@ -5,8 +5,8 @@ for (target, DRR at ``T_current``); it is accepted only if the multiscale NCC be
 target and render strictly increases, and the loop stops at the first rejection or
 after ``max_proposals`` (one patient pose seen by both arms: a rejected move is first tried
 once at :data:`.contract.GREEDY_RETRY_FRACTION` of its size). Scores in float64 (a float32
-mNCC of flat patches is off by about 0.005, enough to flip a decision). numpy poses; any renderer and Refine predictor.
-:func:`greedy_refine` refines one view's camera pose (the paper); :func:`greedy_refine_biplane`
+mNCC of flat patches is off by about 0.005, enough to flip a decision). numpy poses; any
+renderer and Refine predictor. :func:`greedy_refine` refines one view's camera pose (the paper); :func:`greedy_refine_biplane`
 one patient pose seen by both arms.
 """
 
@@ -79,8 +79,8 @@ def greedy_refine_biplane(
     pose each implies and fuses them by what each view observes (:func:`.biplane.fuse_patient_poses`);
     it is accepted only if the mean mNCC of the views strictly increases; a rejected move is tried
     once more at ``retry_fraction`` of its size (rotation and isocentre shift scaled alike) before
-    the loop stops. Returns each view's
-    trace (poses ``X @ A_v``, that view's mNCC, the joint accept flags)."""
+    the loop stops. Returns each view's trace (poses ``X @ A_v``, that view's mNCC, the joint
+    accept flags; a retry is a proposal of its own)."""
     monitor = monitor or Monitor()
     keys = list(rig)
     X = np.asarray(patient, dtype=np.float64)
