@@ -197,6 +197,7 @@ class GeoPoseParameterNode:
     iterations: Annotated[int, WithinRange(*limits.ITERATIONS)] = _DEFAULT_OPTIONS.iterations
     backend: Annotated[str, Choice(list(BACKENDS))] = _DEFAULT_OPTIONS.backend
     independentViews: bool = _DEFAULT_OPTIONS.independent_views
+    similaritySearch: bool = _DEFAULT_OPTIONS.search
     outputsPA: ViewOutputs
     outputsLAT: ViewOutputs
     resultsTable: vtkMRMLTableNode
@@ -480,7 +481,7 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
     def optionsFromParameters(p: GeoPoseParameterNode) -> RegistrationOptions:
         """The registration settings of the panel."""
         return RegistrationOptions(backend=p.backend, device=p.device, refine_steps=p.refineSteps, iterations=p.iterations,
-                                   independent_views=p.independentViews)
+                                   independent_views=p.independentViews, search=p.similaritySearch)
 
     @staticmethod
     def overridesFromParameters(p: GeoPoseParameterNode, key: str) -> dict:

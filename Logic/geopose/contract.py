@@ -54,6 +54,10 @@ NCC_EPS: Final = 1e-5
 GREEDY_MAX_PROPOSALS: Final = 5
 #: A rejected biplane Refine proposal is tried once more, its move scaled by this, before the loop stops.
 GREEDY_RETRY_FRACTION: Final = 0.5
+#: The similarity search after biplane greedy Refine (``register/search.py``), coarse to fine: (step in mm
+#: of isocentre shift and deg of turn about a view's central ray, pixels per side of the images scored;
+#: None: the models' render size).
+SEARCH_SCHEDULE: Final = ((4.0, 64), (2.0, 64), (1.0, None))
 TTO_ITERATIONS: Final = 25
 TTO_MAX_LR: Final = 1e-2
 TTO_WARMUP_FRACTION: Final = 0.3

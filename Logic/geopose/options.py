@@ -66,6 +66,9 @@ class RegistrationOptions:
     #: Register each view on its own (the published pipeline) instead of one patient pose
     #: seen by both arms of the biplane system (their relative geometry from the DICOM angles).
     independent_views: bool = False
+    #: After biplane greedy Refine, search the patient pose's shift and in-plane turns by the views'
+    #: mNCC (``register/search.py``; ours, not the paper's). Ignored with ``independent_views``.
+    search: bool = True
     #: Add the PA/lateral orthogonality term to the TTO objective (docs/conventions.md 5; independent views).
     biplanar: bool = False
 
@@ -91,7 +94,7 @@ class RegistrationOptions:
             object.__setattr__(
                 self, "work_spacing_mm", L.check_range("work_spacing_mm", self.work_spacing_mm, L.WORK_SPACING_MM)
             )
-        for name in ("independent_views", "biplanar"):
+        for name in ("independent_views", "search", "biplanar"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name} must be True or False, got {getattr(self, name)!r}")
 

@@ -3,6 +3,7 @@ line that names the problem and the remedy, or (valid but unusual inputs) handle
 
 from __future__ import annotations
 
+import argparse
 import gzip
 import json
 import re
@@ -27,6 +28,7 @@ from geopose.geometry import CArmAngles, Detector
 from geopose.nets.checkpoint import import_checkpoint
 from geopose.nets.manifest import MANIFEST_NAME, verify_models
 from geopose.options import RegistrationOptions
+from geopose.register.cli import options_from_args, registration_option_args
 from geopose.volume import Volume
 
 REPO = Path(__file__).resolve().parents[2]
@@ -268,6 +270,20 @@ def test_register_options_are_checked_before_any_file_is_read(tmp_path: Path, ca
 def test_fractional_iterations_are_refused():
     with pytest.raises(InputError, match="iterations must be a whole number, got 2.7"):
         RegistrationOptions(iterations=2.7)
+
+
+def test_command_line_switches_reach_the_options():
+    parser = argparse.ArgumentParser()
+    registration_option_args(parser)
+    assert options_from_args(parser.parse_args([])) == RegistrationOptions()
+    options = options_from_args(parser.parse_args(["--no-search", "--independent-views"]))
+    assert options.search is False and options.independent_views is True and options.biplanar is False
+
+
+@pytest.mark.parametrize("name", ["independent_views", "search", "biplanar"])
+def test_switches_take_only_true_or_false(name: str):
+    with pytest.raises(InputError, match=f"{name} must be True or False, got 'no'"):
+        RegistrationOptions(**{name: "no"})
 
 
 @pytest.mark.parametrize("array, message", [

@@ -11,7 +11,7 @@ from PIL import Image
 
 from geopose.options import RegistrationOptions
 from geopose.bench import BenchSettings, convergence_figure, markdown, row_names, seed_range, summarise, training_seeds
-from geopose.bench.run import INSTANT_ROW, LEARNED_ROW
+from geopose.bench.run import INSTANT_ROW, LEARNED_ROW, SEARCH_ROW
 from geopose.cli import main
 
 
@@ -84,11 +84,12 @@ def test_convergence_figure_is_written(tmp_path):
 def test_rows_compare_the_biplane_method_with_the_published_pipeline():
     rows = row_names(BenchSettings(RegistrationOptions(iterations=25), long_iterations=400))
     assert rows[:2] == ["DICOM angles", "DICOM angles + 25 TTO"]
-    assert rows[2:5] == ["biplane: Init", INSTANT_ROW, FINAL]
-    assert rows[5:9] == ["independent: Init", "independent: Init + Refine x1", "independent: greedy Refine",
-                         "independent: greedy Refine + 25 TTO"]
-    assert rows[9] == "truth + 25 TTO (drift)" and rows[-1] == "DICOM angles + 400 TTO"
+    assert rows[2:6] == ["biplane: Init", INSTANT_ROW, SEARCH_ROW, FINAL]
+    assert rows[6:10] == ["independent: Init", "independent: Init + Refine x1", "independent: greedy Refine",
+                          "independent: greedy Refine + 25 TTO"]
+    assert rows[10] == "truth + 25 TTO (drift)" and rows[-1] == "DICOM angles + 400 TTO"
     assert "DICOM angles + 400 TTO" not in row_names(BenchSettings(long_iterations=0))
+    assert SEARCH_ROW not in row_names(BenchSettings(RegistrationOptions(search=False)))
 
 
 def test_training_seeds_are_read_from_the_manifest_and_refused(tmp_path, capsys):
@@ -116,7 +117,7 @@ def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     # TTO rows keep their curves: 2 (or 3) steps and the start
     assert len(case["curves"][LEARNED_ROW.format(n=2)]["pa"]["mncc"]) == 3
     assert len(case["curves"]["DICOM angles + 3 TTO"]["lat"]["mpcd_mm"]) == 4
-    assert case["start"]["chosen"] in ("DICOM angles", "Init", "Refine")
+    assert case["start"]["chosen"] in ("DICOM angles", "Init", "Init PA", "Init LAT", "Refine + search")
     assert "## Targets" in (out / "bench.md").read_text()
     assert (out / "tto_convergence.png").stat().st_size > 10_000
     assert (out / "cases" / "phantom-777001.json").is_file()  # resumable

@@ -147,7 +147,7 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
         np.testing.assert_allclose(view.refine.pose[:3, :3], start[key][:3, :3], atol=1e-3)
         np.testing.assert_allclose(view.refine.pose[:3, 3], start[key][:3, 3], atol=0.5)
     assert refine.calls == 2
-    assert {"prepare", "calibration", "init", "refine", "tto", "done"} <= set(stages)
+    assert {"prepare", "calibration", "init", "refine", "search", "tto", "done"} <= set(stages)
     assert result.engine["render_px"] == ORACLE_RENDER_PX
     metrics = truth_metrics(result, runs, load_truth(case / "cta.nii.gz"))
     for key in ("pa", "lat"):
@@ -161,6 +161,11 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
         assert after["rotation_error_deg"] < before["rotation_error_deg"]
     record = build_record(result, runs, truth_metrics=metrics)
     assert record["schema_version"] == SCHEMA_VERSION
+    # The similarity search moved the refined patient pose to a higher mNCC and nearer the truth.
+    search = record["registration"]["similarity_search"]
+    assert search["mncc"] > search["start_mncc"] and search["moves"] and search["evaluations"] > 30
+    for key in ("pa", "lat"):
+        assert metrics[key]["search"]["mpcd_mm"] < metrics[key]["refine"]["mpcd_mm"], (key, metrics[key])
     json.dumps(record)  # JSON-ready
     pa = record["views"]["pa"]
     assert np.allclose(np.asarray(pa["pose_ras"]), cta.centred_to_ras @ np.asarray(pa["pose_centred"]))
@@ -389,9 +394,10 @@ def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     labels = load_cta(case / "labels.nii.gz", check_hu=False)
     result = register_case(
         cta, runs, models=oracle_models(init, OracleRefine([])), segmentation=labels.like((labels.array >= 2).astype(np.uint8)),
-        options=RegistrationOptions(backend="torch", device="cpu", tto_px=96, iterations=6),
+        options=RegistrationOptions(backend="torch", device="cpu", tto_px=96, iterations=6, search=False),
     )
     registration = result.registration
+    assert registration.search is None and "search" not in result.views["pa"].stage_poses
     assert set(registration.starts) == {"DICOM angles", "Init", "Init PA", "Init LAT", "Refine"}
     assert registration.starts["DICOM angles"] < min(v for k, v in registration.starts.items() if k != "DICOM angles")
     # Both views' Init imply one patient pose and Refine accepted nothing: one learned start, run once.
@@ -437,9 +443,10 @@ def test_one_views_init_alone_is_a_start_when_the_other_view_is_far_off(phantom_
     # The record names every start's ranking loss and where the ones not kept stopped.
     record = build_record(result, runs)["registration"]
     ranking = record["tto_ranking_loss"]
-    assert set(ranking) == set(registration.tto_runs) == {"DICOM angles", "Init", "Init PA", "Init LAT"}
+    # The similarity search moved the fused Init (Refine accepted nothing): a start of its own.
+    assert set(ranking) == set(registration.tto_runs) == {"DICOM angles", "Init", "Init PA", "Init LAT", "Refine + search"}
     assert ranking["Init PA"] == min(v for k, v in ranking.items() if k != "DICOM angles")
-    assert record["tto_stopped_at"] == {"Init": 16, "Init LAT": 16}
+    assert record["tto_stopped_at"] == {"Init": 16, "Init LAT": 16, "Refine + search": 16}
     assert set(registration.tto_objective) == {"DICOM angles", "Init PA"}
     points = load_truth(case / "cta.nii.gz").carotid_points_mm
     for key in ("pa", "lat"):

@@ -34,10 +34,13 @@ from ..register.results import CaseRegistration
 from ..register.tto import TTOSchedule, test_time_optimise
 from .cases import BenchCase
 
-__all__ = ["BenchSettings", "row_names", "evaluate_case", "LEARNED_ROW", "NATIVE_TTO_ROW", "DRIFT_ROW", "INSTANT_ROW"]
+__all__ = ["BenchSettings", "row_names", "evaluate_case", "LEARNED_ROW", "NATIVE_TTO_ROW", "DRIFT_ROW", "INSTANT_ROW",
+           "SEARCH_ROW"]
 
 #: The default registration's rows (the targets refer to them).
 INSTANT_ROW = "biplane: greedy Refine"
+#: The default registration's pose before the TTO: greedy Refine and the similarity search.
+SEARCH_ROW = "biplane: greedy Refine + search"
 LEARNED_ROW = "biplane: greedy Refine + {n} TTO"
 NATIVE_TTO_ROW = "DICOM angles + {n} TTO"
 DRIFT_ROW = "truth + {n} TTO (drift)"
@@ -56,7 +59,7 @@ def row_names(settings: BenchSettings, long: bool = True) -> list[str]:
     n = settings.options.iterations
     rows = [
         "DICOM angles", NATIVE_TTO_ROW.format(n=n),
-        "biplane: Init", INSTANT_ROW, LEARNED_ROW.format(n=n),
+        "biplane: Init", INSTANT_ROW, *([SEARCH_ROW] if settings.options.search else []), LEARNED_ROW.format(n=n),
         "independent: Init", "independent: Init + Refine x1", "independent: greedy Refine",
         f"independent: greedy Refine + {n} TTO",
         DRIFT_ROW.format(n=n),
@@ -101,13 +104,15 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
     masks = dict(cranium_mask=case.cranium, segmentation=case.vessels)
     joint = register_case(case.cta, case.runs, models=models, options=options, **masks)
     paper = register_case(case.cta, case.runs, models=models, options=options.replace(independent_views=True), **masks)
-    times = {f"{stage} (biplane)": joint.runtimes_s[stage] for stage in ("prepare", "calibration", "init", "refine", "tto", "total")}
+    times = {f"{stage} (biplane)": joint.runtimes_s[stage]
+             for stage in ("prepare", "calibration", "init", "refine", "search", "tto", "total") if stage in joint.runtimes_s}
     times |= {f"{stage} (independent)": paper.runtimes_s[stage] for stage in ("refine", "tto", "total")}
     rig = nominal_poses(case.runs)
     poses: dict[str, dict[str, np.ndarray]] = {
         "DICOM angles": dict(rig),
         "biplane: Init": {k: joint.views[k].init_pose for k in VIEW_KEYS},
         INSTANT_ROW: {k: joint.views[k].refine.pose for k in VIEW_KEYS},
+        **({SEARCH_ROW: {k: joint.views[k].search_pose for k in VIEW_KEYS}} if joint.registration.search else {}),
         "independent: Init": {k: paper.views[k].init_pose for k in VIEW_KEYS},
         # one Refine update applied unconditionally: the first proposal of the greedy run
         "independent: Init + Refine x1": {k: (paper.views[k].refine.proposals or [paper.views[k].refine])[0].pose

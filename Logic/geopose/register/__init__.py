@@ -1,6 +1,6 @@
 """GeoPose registration: the one pipeline (``pipeline.register_case``) and its stages
-(case preparation, calibration, calibrated Init, gated refinement, test-time
-optimisation), result dataclasses and record, pictures and the ``register`` command."""
+(case preparation, calibration, calibrated Init, gated refinement, similarity
+search, test-time optimisation), result dataclasses and record, pictures and the ``register`` command."""
 
 from ..lazy import lazy_exports
 
@@ -13,7 +13,9 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "progress": ("ConsoleProgress", "Monitor", "RegistrationCancelled"),
         "quality": ("Quality", "assess"),
         "refine": ("greedy_refine", "greedy_refine_biplane"),
-        "results": ("Calibration", "CaseRegistration", "InitEstimate", "Proposal", "RefineTrace", "ViewOutcome"),
+        "search": ("similarity_search",),
+        "results": ("Calibration", "CaseRegistration", "InitEstimate", "Proposal", "RefineTrace", "SearchTrace",
+                    "ViewOutcome"),
         "tto": ("PAPER_SCHEDULE", "TTOResult", "TTOSchedule", "TTOView", "biplanar_penalty", "test_time_optimise"),
         "objective": ("Objective", "PAPER_OBJECTIVE", "objective_value"),
         "biplane": ("Observability", "fuse_patient_poses", "nominal_poses", "patient_pose", "view_poses"),

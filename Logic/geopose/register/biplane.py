@@ -22,7 +22,7 @@ from ..geometry.detector import AP_REORIENT, Detector
 from ..geometry.poses import (axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles,
                               project_points)
 
-__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "common_axis",
+__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "central_ray", "common_axis",
            "turned_about", "moved_by", "part_way", "valley_turn", "axis_disagreement_mm"]
 
 
@@ -53,6 +53,11 @@ def view_poses(X: np.ndarray, nominal: Mapping[str, np.ndarray]) -> dict[str, np
 def _camera_axes(X: np.ndarray, nominal: np.ndarray) -> np.ndarray:
     """Columns: the view's camera x, y (in-plane) and z (central ray) axes in the CTA frame."""
     return (X @ nominal @ AP_REORIENT)[:3, :3]
+
+
+def central_ray(X: np.ndarray, nominal: np.ndarray) -> np.ndarray:
+    """Unit direction (CTA frame) of the central ray of the view ``nominal`` (``A_v``) at patient pose ``X``."""
+    return _camera_axes(np.asarray(X, dtype=np.float64), nominal)[:, 2]
 
 
 def fuse_patient_poses(

@@ -23,7 +23,7 @@ from .report import OVERLAY_NAMES, write_overlays
 
 #: The options ``geopose register`` (and ``geopose bench``) take, by their RegistrationOptions names.
 OPTION_ARGS = ("backend", "device", "refine_steps", "iterations", "tto_px", "render_px", "model_clip_percentiles",
-               "work_spacing_mm", "independent_views", "biplanar")
+               "work_spacing_mm", "independent_views", "search", "biplanar")
 
 
 def registration_option_args(p: argparse.ArgumentParser) -> None:
@@ -42,6 +42,8 @@ def registration_option_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--work-spacing-mm", type=float, help="finest voxel size (mm) the renderers sample (default: the CTA's)")
     p.add_argument("--independent-views", action="store_true",
                    help="register each view on its own (the published pipeline) instead of one patient pose seen by both arms")
+    p.add_argument("--no-search", dest="search", action="store_false",
+                   help="skip the similarity search after biplane greedy Refine (the networks' pose goes to the TTO as it is)")
     p.add_argument("--biplanar", action="store_true", help="independent views: add the orthogonality term to the TTO")
 
 

@@ -8,6 +8,8 @@ Read top to bottom, :func:`register_case` is the whole method (paper section 2.3
    canonical -> native frame transfer (``calibration.py``);
 3. ``calibrated_init``: Init on each view's MAP, moved into the native frame;
 4. ``greedy_refine``: Refine proposals accepted while the mNCC improves (``refine.py``);
+   one patient pose seen by both arms then gets a ``similarity_search`` of its shift and
+   in-plane turns by the same score (``search.py``; ours);
 5. ``test_time_optimise``: the GeoReg objective through the differentiable renderer
    (``tto.py``; needs PyTorch, skipped with a note without it);
 6. ``score``: final mNCC, silhouette Dice and the quality flag per view (``quality.py``).
@@ -15,10 +17,11 @@ Read top to bottom, :func:`register_case` is the whole method (paper section 2.3
 By default the two runs are one biplane acquisition: one patient pose ``X`` places both
 C-arms (``T_v = X @ A_v``, ``A_v`` from each run's DICOM geometry; ``biplane.py``). Init's
 per-view estimates are fused into ``X`` by what each view observes, Refine's proposals
-likewise, and the TTO optimises ``X`` against both views from every distinct candidate start
-(the DICOM-angle pose, the fused Init, each view's Init alone, Refine) through its coarse
-steps, then from the DICOM angles and the best other start (by the objective, ``objective.py``)
-to the end; the lower final objective wins (the DICOM angles' within a tie), so the result is
+likewise, the similarity search moves ``X`` while the views' mNCC improves, and the TTO
+optimises ``X`` against both views from every distinct candidate start (the DICOM-angle
+pose, the fused Init, each view's Init alone, Refine + search) through its coarse steps,
+then from the DICOM angles and the best other start (by the objective, ``objective.py``) to
+the end; the lower final objective wins (the DICOM angles' within a tie), so the result is
 never worse, by the objective, than the acquisition's own geometry.
 ``independent_views=True`` runs the published pipeline: each view on its own, the paper's
 objective and schedule.
@@ -56,15 +59,18 @@ from .progress import CancelCheck, Monitor, ProgressCallback
 from .quality import VIEW_DISAGREEMENT_MM, Quality, assess
 from .refine import greedy_refine, greedy_refine_biplane
 from .results import CaseRegistration, InitEstimate, Registration, ViewOutcome
+from .search import similarity_search
 from .tto import PAPER_SCHEDULE, TTOResult, TTOSchedule, TTOView, test_time_optimise, test_time_optimise_starts
 
 __all__ = [
-    "DICOM_START", "Engine", "NO_TORCH_TTO_NOTE", "OBJECTIVE_TIE", "chosen_result", "resolve_engine", "register_case",
-    "score_view", "torch_available", "torch_renderer_for", "tto_views",
+    "DICOM_START", "SEARCHED_START", "Engine", "NO_TORCH_TTO_NOTE", "OBJECTIVE_TIE", "chosen_result", "resolve_engine",
+    "register_case", "score_view", "torch_available", "torch_renderer_for", "tto_views",
 ]
 
 #: The candidate start at the DICOM angles' geometry (``X = I``).
 DICOM_START = "DICOM angles"
+#: The candidate start after greedy Refine and the similarity search.
+SEARCHED_START = "Refine + search"
 
 #: Said (progress, record, Slicer table) when the test-time optimisation cannot run.
 NO_TORCH_TTO_NOTE = ("PyTorch is not installed: calibration, Init and Refine ran on onnxruntime; the test-time "
@@ -288,20 +294,27 @@ def register_case(
         else:
             refined = {key: greedy_refine(renderer, targets[key], init_poses[key], inits[key].view, model_set.refine,
                                           render_px, options.refine_steps, monitor) for key in VIEW_KEYS}
+    learned = {key: refined[key].pose for key in VIEW_KEYS}
+    if joint and options.search:
+        with _timed(times, "search", engine):
+            registration.search = similarity_search(renderer, targets, patient_pose(learned["pa"], rig["pa"]), rig,
+                                                    render_px, monitor=monitor)
+        learned = view_poses(registration.search.patient_pose, rig)
 
     # 5. The candidate starts scored by the objective: the DICOM-angle pose, Init (fused), each
     #    view's Init alone (a view's Init can be far off where the other's is right) and Refine
-    #    (one patient pose). The TTO (needs PyTorch) runs the distinct starts as a tournament:
-    #    all through the coarse steps, then the DICOM angles' run and the best other by the loss
-    #    there to the end; the lower final objective wins (the DICOM angles' on a tie), so the
-    #    result is never worse, by the objective, than the acquisition's own geometry optimised alike.
-    finals = {key: refined[key].pose for key in VIEW_KEYS}
+    #    with the search (one patient pose). The TTO (needs PyTorch) runs the distinct starts as a
+    #    tournament: all through the coarse steps, then the DICOM angles' run and the best other by
+    #    the loss there to the end; the lower final objective wins (the DICOM angles' on a tie), so
+    #    the result is never worse, by the objective, than the acquisition's own geometry optimised
+    #    alike.
+    finals = dict(learned)
     tto_result: TTOResult | None = None
     with _timed(times, "tto", engine):
         if joint:
             candidates = {DICOM_START: np.eye(4), "Init": X_init,
                           **{f"Init {key.upper()}": implied[key] for key in VIEW_KEYS},
-                          "Refine": patient_pose(refined["pa"].pose, rig["pa"])}
+                          SEARCHED_START if registration.search else "Refine": patient_pose(learned["pa"], rig["pa"])}
             registration.starts = {name: _pair_objective(renderer, view_poses(X, rig), case) for name, X in candidates.items()}
             registration.chosen_start = min(registration.starts, key=registration.starts.get)
             registration.patient_pose = candidates[registration.chosen_start]
@@ -337,10 +350,10 @@ def register_case(
     with _timed(times, "score", engine):
         for key in VIEW_KEYS:
             score, dice = score_view(renderer, finals[key], case.views[key])
-            quality: Quality = assess(score, dice, *stage_agreement(refined[key].pose, finals[key]),
+            quality: Quality = assess(score, dice, *stage_agreement(learned[key], finals[key]),
                                       doubts=_consistency_doubts(key, inits[key], labels[key], registration))
             outcomes[key] = ViewOutcome(key, case.views[key], inits[key], init_poses[key], refined[key], finals[key], score,
-                                        dice, quality)
+                                        dice, quality, learned[key] if registration.search else None)
     times["total"] = time.perf_counter() - t_start
     monitor.step("done", 1.0, "registration finished" + (" (" + notes[0] + ")" if notes else ""))
     return CaseRegistration(cta, case.labels_source, calibration, outcomes, tto_result, times, options,

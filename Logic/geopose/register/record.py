@@ -19,6 +19,9 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 8: ``registration.similarity_search`` (the search after biplane greedy Refine: start and end mNCC and
+#: patient pose, the moves kept, the poses scored; null when it did not run) and the views' ``search``
+#: stage pose.
 #: 7: each of ``tto_axis_searches`` adds ``rotation_per_rad`` and ``shift_mm_per_rad``: the direction it
 #: searched along (the turn about the common axis with the other parameters' compensation,
 #: ``biplane.valley_turn``).
@@ -33,7 +36,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -138,6 +141,17 @@ def _view_entry(case: CaseRegistration, v: ViewOutcome, run: DSARun) -> dict:
     return entry
 
 
+def _search_entry(case: CaseRegistration) -> dict | None:
+    """The similarity search after biplane greedy Refine, or None when it did not run."""
+    search = case.registration.search
+    if search is None:
+        return None
+    return {"start_mncc": search.start_mncc, "mncc": search.mncc, "start_patient_pose_centred": _m(search.start_pose),
+            "patient_pose_centred": _m(search.patient_pose), "evaluations": search.evaluations,
+            "moves": [{"parameter": name, "step": step} for name, step in search.moves],
+            "doc": "mNCC: the views' mean in the model geometry, as the greedy gate scores; steps in mm (shift) or deg (turn)"}
+
+
 def _vessel_selection(case: CaseRegistration) -> dict | None:
     """The TTO's reading of the opacified vessels and the runs that compared them alone, or None."""
     selection = case.registration.vessel_selection
@@ -190,6 +204,7 @@ def build_record(
             "patient_pose_centred": None if case.registration.patient_pose is None else _m(case.registration.patient_pose),
             "nominal_pose_centred": {k: _m(A) for k, A in case.registration.rig.items()},
             "checks": case.registration.checks,
+            "similarity_search": _search_entry(case),
         },
         "calibration": {
             "calibration_pose": _m(cal.calibration_pose),

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from .opacified import VesselSelection
     from .tto import TTOResult
 
-__all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "ViewOutcome", "Registration", "CaseRegistration"]
+__all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "SearchTrace", "ViewOutcome", "Registration", "CaseRegistration"]
 
 
 @dataclass
@@ -74,9 +74,24 @@ class RefineTrace:
 
 
 @dataclass
+class SearchTrace:
+    """The similarity search of one patient pose (``search.py``): start and end patient pose
+    ``(4, 4)`` with the views' mean mNCC, the moves kept ``(parameter, step)`` in order, and how
+    many poses were scored."""
+
+    start_pose: np.ndarray
+    start_mncc: float
+    patient_pose: np.ndarray
+    mncc: float
+    moves: list[tuple[str, float]] = field(default_factory=list)
+    evaluations: int = 0
+
+
+@dataclass
 class ViewOutcome:
     """Everything one view went through. ``init_pose`` is the pose after the Init stage: the
-    view's own calibrated Init, or, registering one patient pose, the fused one."""
+    view's own calibrated Init, or, registering one patient pose, the fused one; ``search_pose``
+    the pose after the similarity search (None: it did not run)."""
 
     key: str
     prepared: PreparedDSA
@@ -87,10 +102,12 @@ class ViewOutcome:
     final_mncc: float
     silhouette_dice: float
     quality: Quality
+    search_pose: np.ndarray | None = None
 
     @property
     def stage_poses(self) -> dict[str, np.ndarray]:
-        return {"init": self.init_pose, "refine": self.refine.pose, "final": self.final_pose}
+        searched = {} if self.search_pose is None else {"search": self.search_pose}
+        return {"init": self.init_pose, "refine": self.refine.pose, **searched, "final": self.final_pose}
 
 
 @dataclass
@@ -102,7 +119,8 @@ class Registration:
     the finalists' final objective (``tto_objective``), the start the result came from
     (``chosen_start``); the opacified vessels the TTO read after its coarse steps
     (``vessel_selection``, ``opacified.py``; None: not read), by which alone ``tto_objective``
-    compares the finalists; the consistency ``checks`` of the two views."""
+    compares the finalists; the consistency ``checks`` of the two views; the similarity search
+    after greedy Refine (``search``; None: it did not run)."""
 
     mode: str
     rig: dict[str, np.ndarray] = field(default_factory=dict)
@@ -113,6 +131,7 @@ class Registration:
     tto_objective: dict[str, float] = field(default_factory=dict)
     vessel_selection: "VesselSelection | None" = None
     checks: dict = field(default_factory=dict)
+    search: SearchTrace | None = None
 
 
 @dataclass

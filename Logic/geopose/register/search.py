@@ -1,0 +1,92 @@
+"""Similarity search of one patient pose seen by both arms (ours, not the paper's).
+
+After greedy Refine, a derivative-free pattern search moves the patient pose ``X`` by what
+both views observe in-plane: the isocentre shift along each CTA axis (mm) and the turn about
+each view's central ray (deg; that view's in-plane rotation). Each move is tried in both
+directions at each step size of :data:`.contract.SEARCH_SCHEDULE`; an improvement of the
+views' mean mNCC (float64) between the model-geometry target and the DRR, both at that step's
+image size, is kept and the directions are tried again; a step size ends when no move
+improves. The coarse steps score small images (the renderer then samples a coarser CTA
+level: a third of the time), the finest the networks' render size. The turn about the axis both views share is left to the TTO: it
+barely changes either image (``biplane.valley_turn``). No PyTorch: it runs on either engine,
+so the torch-free engine's result gains it too. numpy poses; any renderer.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from .. import contract as C
+from ..geometry.detector import Detector
+from ..images import resize_bilinear
+from ..metrics.similarity import mncc
+from ..render.renderer import Renderer
+from .biplane import central_ray, moved_by
+from .progress import Monitor
+from .results import SearchTrace
+
+__all__ = ["similarity_search"]
+
+
+def _moves(X: np.ndarray, rig: Mapping[str, np.ndarray]) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """``(name, rotation (3,) rad per deg, shift (3,) mm per mm)`` of each searched parameter at ``X``."""
+    moves = [(f"shift {axis} (mm)", np.zeros(3), e) for axis, e in zip("xyz", np.eye(3))]
+    moves += [(f"turn about the {key.upper()} ray (deg)", np.radians(1.0) * central_ray(X, rig[key]), np.zeros(3))
+              for key in rig]
+    return moves
+
+
+def similarity_search(
+    renderer: Renderer,
+    targets: Mapping[str, np.ndarray],
+    patient: np.ndarray,
+    rig: Mapping[str, np.ndarray],
+    render_px: int,
+    schedule: tuple[tuple[float, int | None], ...] = C.SEARCH_SCHEDULE,
+    monitor: Monitor | None = None,
+) -> SearchTrace:
+    """Search the patient pose ``patient`` ``(4, 4)`` (camera poses ``X @ rig[v]``) against the
+    model-geometry ``targets`` ``{view: (1, 1, 256, 256)}``; ``schedule``: ``(step, image px)``
+    coarse to fine, the step in mm of shift and deg of turn, the image size of its scores (None:
+    ``render_px``). Returns the start and end with the views' mean mNCC at the finest size, the
+    moves kept and the number of poses scored."""
+    monitor = monitor or Monitor()
+    X = np.asarray(patient, dtype=np.float64)
+    keys = list(rig)
+    trace = SearchTrace(X, 0.0, X, 0.0)
+
+    def scorer(px: int):
+        """The views' mean mNCC of a patient pose, both images at ``px`` pixels per side."""
+        detector = Detector.model().resized(px)
+        small = {k: resize_bilinear(targets[k][0], (px, px))[0] for k in keys}
+
+        def score(Y: np.ndarray) -> float:
+            images = renderer.render(np.stack([Y @ rig[k] for k in keys]), detector, ("total",))
+            trace.evaluations += 1
+            return float(np.mean([mncc(small[k], images[j, 0]) for j, k in enumerate(keys)]))
+
+        return score
+
+    trace.start_mncc = scorer(schedule[-1][1] or render_px)(X)
+    for i, (size, px) in enumerate(schedule):
+        monitor.step("search", i / len(schedule), f"step {size:g} ({trace.evaluations} poses scored)")
+        score = scorer(px or render_px)
+        best = score(X)
+        improved = True
+        while improved:
+            improved = False
+            for name, turn, shift in _moves(X, rig):
+                for sign in (1.0, -1.0):
+                    candidate = moved_by(X, sign * size * turn, sign * size * shift)
+                    value = score(candidate)
+                    if value > best:
+                        X, best, improved = candidate, value, True
+                        trace.moves.append((name, sign * size))
+                        break
+                if improved:
+                    break
+    trace.patient_pose, trace.mncc = X, best
+    monitor.step("search", 1.0, f"{len(trace.moves)} moves kept of {trace.evaluations} poses scored")
+    return trace
