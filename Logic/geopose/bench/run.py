@@ -104,8 +104,8 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
     masks = dict(cranium_mask=case.cranium, segmentation=case.vessels)
     joint = register_case(case.cta, case.runs, models=models, options=options, **masks)
     paper = register_case(case.cta, case.runs, models=models, options=options.replace(independent_views=True), **masks)
-    times = {f"{stage} (biplane)": joint.runtimes_s[stage]
-             for stage in ("prepare", "calibration", "init", "refine", "search", "tto", "total") if stage in joint.runtimes_s}
+    stages = ("prepare", "calibration", "init", "refine", "search", "tto", "total")
+    times = {f"{stage} (biplane)": joint.runtimes_s[stage] for stage in stages if stage in joint.runtimes_s}
     times |= {f"{stage} (independent)": paper.runtimes_s[stage] for stage in ("refine", "tto", "total")}
     rig = nominal_poses(case.runs)
     poses: dict[str, dict[str, np.ndarray]] = {

@@ -22,8 +22,8 @@ from ..geometry.detector import AP_REORIENT, Detector
 from ..geometry.poses import (axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles,
                               project_points)
 
-__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "central_ray", "common_axis",
-           "turned_about", "moved_by", "part_way", "valley_turn", "axis_disagreement_mm"]
+__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "central_ray",
+           "common_axis", "turned_about", "moved_by", "part_way", "valley_turn", "axis_disagreement_mm"]
 
 
 @dataclass(frozen=True)

@@ -149,7 +149,8 @@ def _search_entry(case: CaseRegistration) -> dict | None:
     return {"start_mncc": search.start_mncc, "mncc": search.mncc, "start_patient_pose_centred": _m(search.start_pose),
             "patient_pose_centred": _m(search.patient_pose), "evaluations": search.evaluations,
             "moves": [{"parameter": name, "step": step} for name, step in search.moves],
-            "doc": "mNCC: the views' mean in the model geometry, as the greedy gate scores; steps in mm (shift) or deg (turn)"}
+            "doc": "mNCC: the views' mean in the model geometry at the finest step's image size "
+            "(contract.SEARCH_SCHEDULE); steps in mm (shift) or deg (turn)"}
 
 
 def _vessel_selection(case: CaseRegistration) -> dict | None:

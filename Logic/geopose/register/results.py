@@ -22,7 +22,8 @@ if TYPE_CHECKING:
     from .opacified import VesselSelection
     from .tto import TTOResult
 
-__all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "SearchTrace", "ViewOutcome", "Registration", "CaseRegistration"]
+__all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "SearchTrace", "ViewOutcome", "Registration",
+           "CaseRegistration"]
 
 
 @dataclass
