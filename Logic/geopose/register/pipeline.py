@@ -295,11 +295,13 @@ def register_case(
             refined = {key: greedy_refine(renderer, targets[key], init_poses[key], inits[key].view, model_set.refine,
                                           render_px, options.refine_steps, monitor) for key in VIEW_KEYS}
     learned = {key: refined[key].pose for key in VIEW_KEYS}
-    if joint and options.search:
-        with _timed(times, "search", engine):
-            registration.search = similarity_search(renderer, targets, patient_pose(learned["pa"], rig["pa"]), rig,
-                                                    render_px, monitor=monitor)
-        learned = view_poses(registration.search.patient_pose, rig)
+    if joint:
+        X_learned = patient_pose(learned["pa"], rig["pa"])
+        if options.search:
+            with _timed(times, "search", engine):
+                registration.search = similarity_search(renderer, targets, X_learned, rig, render_px, monitor=monitor)
+            X_learned = registration.search.patient_pose
+            learned = view_poses(X_learned, rig)
 
     # 5. The candidate starts scored by the objective: the DICOM-angle pose, Init (fused), each
     #    view's Init alone (a view's Init can be far off where the other's is right) and Refine
@@ -314,7 +316,7 @@ def register_case(
         if joint:
             candidates = {DICOM_START: np.eye(4), "Init": X_init,
                           **{f"Init {key.upper()}": implied[key] for key in VIEW_KEYS},
-                          SEARCHED_START if registration.search else "Refine": patient_pose(learned["pa"], rig["pa"])}
+                          SEARCHED_START if registration.search else "Refine": X_learned}
             registration.starts = {name: _pair_objective(renderer, view_poses(X, rig), case) for name, X in candidates.items()}
             registration.chosen_start = min(registration.starts, key=registration.starts.get)
             registration.patient_pose = candidates[registration.chosen_start]

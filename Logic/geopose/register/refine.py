@@ -6,8 +6,8 @@ target and render strictly increases, and the loop stops at the first rejection 
 after ``max_proposals`` (one patient pose seen by both arms: a rejected move is first tried
 once at :data:`.contract.GREEDY_RETRY_FRACTION` of its size). Scores in float64 (a float32
 mNCC of flat patches is off by about 0.005, enough to flip a decision). numpy poses; any
-renderer and Refine predictor. :func:`greedy_refine` refines one view's camera pose (the paper); :func:`greedy_refine_biplane`
-one patient pose seen by both arms.
+renderer and Refine predictor. :func:`greedy_refine` refines one view's camera pose (the
+paper); :func:`greedy_refine_biplane` one patient pose seen by both arms.
 """
 
 from __future__ import annotations
