@@ -103,6 +103,8 @@ DICOM angles from 3.8 to 4.7 mm, and the drift stayed 0.2 mm: half the vessels g
 less, and a carotid side still holds its posterior-circulation branches, which a carotid
 injection does not fill. The errors left on validation are starts the 25 steps do not bring in
 (6005, 6006), not the objective's optimum.
+On real head CTs the optimum lies farther from the truth (0.6-2.6 deg), moved by the runs' quantum
+noise: docs/objective_real_heads.md.
 """
 
 #: The reach row: this objective from a perturbed start.
