@@ -103,8 +103,10 @@ DICOM angles from 3.8 to 4.7 mm, and the drift stayed 0.2 mm: half the vessels g
 less, and a carotid side still holds its posterior-circulation branches, which a carotid
 injection does not fill. The errors left on validation are starts the 25 steps do not bring in
 (6005, 6006), not the objective's optimum.
-On real head CTs the optimum lies farther from the truth (0.6-2.6 deg), moved by the runs' quantum
-noise: docs/objective_real_heads.md.
+On real head CTs the optimum lay farther from the truth (0.6-2.6 deg), moved by the runs' quantum
+noise; since 2026-12-03 the vessel image weights the frames by the run's bolus, which leaves less
+of it (0.0-0.8 deg there, 0.31 mm on the 40 benchmark subjects; docs/objective_real_heads.md). The
+table above was measured with the plain temporal mean.
 """
 
 #: The reach row: this objective from a perturbed start.

@@ -6,7 +6,7 @@ counterpart, the DRR at the true pose sent through the same intensity chain:
 * silhouette: the DRR's total channel clipped like the MAP (``objective.clip_like_target``
   over the DSA mask's columns) instead of the preprocessed MAP;
 * vessels: the DRR of the vessels the runs show opacified (``opacified.read_opacified`` at the
-  truth), min-max, instead of the vessel image from the runs' temporal mean.
+  truth), min-max, instead of the vessel image made from the runs' frames.
 
 A target that leaves the TTO at the truth holds no bias; the change the swap makes names the
 image whose texture moves the optimum. ``--no-motion`` simulates the runs without patient

@@ -68,9 +68,13 @@ BIPLANAR_WEIGHT: Final = 0.1
 
 # ------------------------------------------------------- DSA preprocessing
 MAP_CLIP_PERCENTILES: Final = (25.0, 75.0)
-#: Ours, not the paper's: the vessel image (temporal mean) keeps the percentiles (over the DSA cranium
-#: mask) between which the opacified vessels stand out of the noise (docs/objective.md).
+#: Ours, not the paper's: the vessel image (bolus-weighted mean of the frames) keeps the percentiles (over the
+#: DSA cranium mask) between which the opacified vessels stand out of the noise (docs/objective.md).
 VESSEL_CLIP_PERCENTILES: Final = (90.0, 99.9)
+#: Ours: the vessel image averages the frames weighted by the run's own bolus curve (a temporal matched
+#: filter, ``dsa.preprocess.bolus_weighted_mean``), the curve read from the pixels whose temporal mean is at
+#: or above this percentile over the DSA cranium mask (docs/objective_real_heads.md).
+BOLUS_PIXEL_PERCENTILE: Final = 98.0
 #: Ours: which of the CTA's vessels the runs show opacified (``register/opacified.py``). A vessel voxel is
 #: kept when, in every view with a vessel image, that image (blurred by ``OPACIFIED_BLUR_PX`` at the TTO
 #: size, scaled to max 1) reaches ``OPACIFIED_THRESHOLD`` where the voxel projects; when fewer than

@@ -32,6 +32,7 @@ __all__ = [
     "intensity_unit",
     "preprocess_dsa",
     "vessel_image",
+    "bolus_weighted_mean",
     "TTO_TARGET_PX",
 ]
 
@@ -220,13 +221,35 @@ class PreparedDSA:
     view_label: int
 
 
+def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The frames ``(T, H, W)`` averaged with weights that follow the run's own bolus (a temporal
+    matched filter): the mean over frames of the pixels whose temporal mean reaches
+    ``BOLUS_PIXEL_PERCENTILE`` over the cranium ``mask`` (the brightest vessels), less its median
+    over frames, negative parts zeroed. Frames without contrast get no weight, so the noise they
+    add to a plain mean drops out; a run without a bolus (flat curve, or one frame) gets the
+    plain mean. float32 ``(H, W)``."""
+    frames = np.asarray(frames, dtype=np.float32)
+    inside = np.asarray(mask) > 0
+    mean = frames.mean(axis=0)
+    if not inside.any():
+        raise InputError("the cranium mask is empty: no pixels to read the bolus from")
+    bright = inside & (mean >= np.percentile(mean[inside], C.BOLUS_PIXEL_PERCENTILE))
+    curve = frames[:, bright].mean(axis=1, dtype=np.float64)
+    weights = np.clip(curve - np.median(curve), 0.0, None)
+    if not weights.sum() > 0:
+        return mean
+    return np.tensordot((weights / weights.sum()).astype(np.float32), frames, axes=1)
+
+
 def vessel_image(image: np.ndarray, mask: np.ndarray, source: Detector, target: Detector) -> np.ndarray:
-    """The opacified vessels of a run's temporal mean ``(H, W)`` on ``target``: clipped to its
-    ``VESSEL_CLIP_PERCENTILES`` over the cranium ``mask`` (below: noise; above: a few
-    saturated pixels), masked, resampled (anti-aliased), min-max. Subtraction noise has zero
-    mean, so the mean over frames keeps the vessels and drops the noise-made head silhouette
-    (and the bright skull base) that the MAP's maximum holds; this is what the TTO aligns
-    the CTA's vessels on (docs/objective.md)."""
+    """The opacified vessels of a run's bolus-weighted mean ``(H, W)`` (:func:`bolus_weighted_mean`)
+    on ``target``: clipped to its ``VESSEL_CLIP_PERCENTILES`` over the cranium ``mask`` (below:
+    noise; above: a few saturated pixels), masked, resampled (anti-aliased), min-max. Subtraction
+    noise has zero mean, so averaging over frames keeps the vessels and drops the noise-made head
+    silhouette (and the bright skull base) that the MAP's maximum holds; this is what the TTO aligns
+    the CTA's vessels on (docs/objective.md). What noise is left moves the objective's optimum
+    (docs/objective_real_heads.md): weighting the frames by the bolus leaves less of it than the
+    plain mean."""
     inside = np.asarray(mask) > 0
     lo, hi = np.percentile(image[inside], C.VESSEL_CLIP_PERCENTILES)
     vessels = (np.clip(image, lo, hi) - lo) * inside
@@ -276,6 +299,6 @@ def preprocess_dsa(
     scale = tto_px / max(h, w)
     tto = run.detector.resized(max(1, round(h * scale)), max(1, round(w * scale)))
     tto_image, tto_mask = _finish(clipped, mask, run.detector, tto, unit)
-    tto_vessels = vessel_image(frames.mean(axis=0), mask, run.detector, tto)
+    tto_vessels = vessel_image(bolus_weighted_mean(frames, mask), mask, run.detector, tto)
     return PreparedDSA(image, mask, model_image, model_mask, model, tto_image, tto_mask, tto, tto_vessels, run.view_role,
                        run.view_label)
