@@ -62,6 +62,10 @@ TTO_ITERATIONS: Final = 25
 TTO_MAX_LR: Final = 1e-2
 TTO_WARMUP_FRACTION: Final = 0.3
 TTO_DIV_FACTOR: Final = 25.0
+#: The OneCycle's last learning rate as a share of its peak: the paper's (PyTorch's default
+#: ``final_div_factor`` 1e4, so 1 / (25 x 1e4)) and the patient-pose schedule's (docs/tto_schedule.md).
+PAPER_TTO_FINAL_LR_FRACTION: Final = 1.0 / (TTO_DIV_FACTOR * 1e4)
+TTO_FINAL_LR_FRACTION: Final = 0.1
 TTO_TRANSLATION_SCALE_MM: Final = 200.0
 TTO_NCC_WEIGHT: Final = 0.5
 BIPLANAR_WEIGHT: Final = 0.1

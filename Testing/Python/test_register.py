@@ -216,6 +216,12 @@ def test_tto_reaches_one_mm_on_a_consistent_target(phantom_case):
     # The trace says which steps ran at half size (coarse to fine) and keeps the best full-size pose.
     sizes = [e["size"] for e in result.trace]
     assert sizes[: TTOSchedule().coarse_steps()] == ["half"] * TTOSchedule().coarse_steps() and sizes[-1] == "full"
+    # The OneCycle peaks at the schedule's rates (rad, mm) and anneals to its final share of them, not to 0.
+    rates = np.array([e["learning_rates"] for e in result.trace[:-1]])
+    peak = np.array([TTOSchedule().rotation_lr_rad, TTOSchedule().translation_lr_mm])
+    assert result.trace[-1]["learning_rates"] is None
+    np.testing.assert_allclose(rates.max(axis=0), peak, rtol=0.05)
+    np.testing.assert_allclose(rates[-1], C.TTO_FINAL_LR_FRACTION * peak, rtol=1e-6)
 
 
 def test_common_axis_search_turns_the_patient_back(phantom_case):
@@ -472,7 +478,10 @@ def test_tto_started_at_the_truth_stays_near_it(phantom_case):
                                  truth.carotid_points_mm)["mpcd_mm"] for k in runs}
 
     ours = drift(run_tto(renderer, tto_views(prep.views, truth.poses), rig=nominal_poses(runs)).poses)
-    paper = drift(run_tto(renderer, tto_views(prep.views, truth.poses), PAPER_SCHEDULE, objective=PAPER_OBJECTIVE).poses)
+    published = run_tto(renderer, tto_views(prep.views, truth.poses), PAPER_SCHEDULE, objective=PAPER_OBJECTIVE)
+    paper = drift(published.poses)
+    # The published schedule keeps PyTorch's OneCycle: it anneals to 1 / (25 x 1e4) of its peak.
+    assert published.trace[-2]["learning_rates"] == [pytest.approx(C.TTO_MAX_LR * C.PAPER_TTO_FINAL_LR_FRACTION)]
     assert max(ours.values()) <= TTO_DRIFT_BOUND_MM, ours
     assert sum(ours.values()) < sum(paper.values()), (ours, paper)
 

@@ -89,7 +89,8 @@ class TTOSchedule:
     of the parabola through them (within twice the step) scored too, the best kept (docs/tto_schedule.md).
     ``rotation_prior_per_rad2``: the weight of the prior on that turn (:data:`ROTATION_PRIOR_PER_RAD2`).
     ``finalists``: with several starts (:func:`test_time_optimise_starts`), how many run on after
-    the coarse steps.
+    the coarse steps. ``final_lr_fraction``: the learning rate the OneCycle anneals to, as a share
+    of the peak (the full-size steps keep enough of it to remove the last degrees).
     """
 
     iterations: int = C.TTO_ITERATIONS
@@ -101,6 +102,7 @@ class TTOSchedule:
     axis_search_step_deg: float = 4.0
     rotation_prior_per_rad2: float = ROTATION_PRIOR_PER_RAD2
     finalists: int = 2
+    final_lr_fraction: float = C.TTO_FINAL_LR_FRACTION
 
     def coarse_steps(self) -> int:
         return int(round(self.iterations * self.coarse_fraction))
@@ -112,13 +114,16 @@ class TTOSchedule:
 
 
 #: The paper's schedule, all steps at full size (independent views).
-PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True, axis_search_at=())
+PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True, axis_search_at=(),
+                             final_lr_fraction=C.PAPER_TTO_FINAL_LR_FRACTION)
 
 
 @dataclass
 class TTOResult:
     """Best pose per view, its mNCC and iteration; the patient pose when one was optimised;
-    ``trace``: per iteration the loss, the image size and per view the mNCC, Dice loss and pose;
+    ``trace``: per iteration the loss, the image size, the learning rate of each parameter group that
+    step used (rad and mm for a patient pose; None on the last, which only evaluates) and per view
+    the mNCC, Dice loss and pose;
     ``axis_searches``: per common-axis search its iteration, turns (deg), losses, choice and direction;
     ``stopped_at``: the iteration a start of :func:`test_time_optimise_starts` stopped at when it
     was not among the finalists (None: it ran to the end); ``ranking_loss``: the full-size loss
@@ -339,7 +344,8 @@ class _Run:
             self.optimiser = torch.optim.NAdam(groups, lr=groups[0]["lr"])
             self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
                 self.optimiser, max_lr=[g["lr"] for g in groups], total_steps=self.n, pct_start=C.TTO_WARMUP_FRACTION,
-                div_factor=C.TTO_DIV_FACTOR, cycle_momentum=False,
+                div_factor=C.TTO_DIV_FACTOR, final_div_factor=1.0 / (C.TTO_DIV_FACTOR * schedule.final_lr_fraction),
+                cycle_momentum=False,
             )
 
     def _evaluate(self, size: str) -> tuple:
@@ -447,6 +453,7 @@ class _Run:
                 total, losses, poses = self._evaluate(size)
             self.result.trace.append({
                 "iteration": it, "size": size, "loss": float(total.detach()),
+                "learning_rates": None if final else [g["lr"] for g in self.optimiser.param_groups],
                 "views": {k: {"mncc": losses[k][1], "dice_loss": losses[k][2], "vessel_ncc": losses[k][3],
                               "pose": poses[k].tolist()} for k in self.names},
             })
