@@ -22,13 +22,13 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_objective_real import case_errors  # noqa: E402
 from heldout import publish  # noqa: E402
 
 from geopose import contract as C  # noqa: E402
 from geopose.bench.cases import BenchCase, ge_head_case, headsq_case, phantom_case, seed_range  # noqa: E402
 from geopose.register import pipeline  # noqa: E402
 from geopose.register.case import VIEW_KEYS  # noqa: E402
-from geopose.register.evaluate import evaluate_pose  # noqa: E402
 from geopose.register.tto import TTOSchedule  # noqa: E402
 
 FLOORS = (C.PAPER_TTO_FINAL_LR_FRACTION, 0.05, C.TTO_FINAL_LR_FRACTION, 0.25)
@@ -49,10 +49,7 @@ def _register(case: BenchCase, floor: float) -> tuple[float, float, float | None
     default registration with the TTO annealing to ``floor`` of its peak learning rate."""
     with mock.patch.object(pipeline, "TTOSchedule", partial(TTOSchedule, final_lr_fraction=floor)):
         reg = pipeline.register_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels)
-    e = [evaluate_pose(reg.views[k].final_pose, case.true_poses[k], case.runs[k].detector, case.runs[k].angles.sod_mm,
-                       case.carotid_points_mm) for k in VIEW_KEYS]
-    mpcd = None if case.carotid_points_mm is None else float(np.mean([x["mpcd_mm"] for x in e]))
-    return max(x["rotation_error_deg"] for x in e), max(x["source_distance_mm"] for x in e), mpcd
+    return case_errors(case, {k: reg.views[k].final_pose for k in VIEW_KEYS})
 
 
 def _cell(err: tuple[float, float, float | None]) -> str:

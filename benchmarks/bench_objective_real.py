@@ -64,7 +64,7 @@ def _noise_free(views: list[TTOView], renderer: TorchRenderer, rig: dict, X: np.
     return out
 
 
-def _errors(case: BenchCase, poses: dict) -> tuple[float, float, float | None]:
+def case_errors(case: BenchCase, poses: dict) -> tuple[float, float, float | None]:
     """(rotation error deg, worst view's source-position error mm, mean carotid mPCD mm or None)."""
     e = [evaluate_pose(poses[k], case.true_poses[k], case.runs[k].detector, case.runs[k].angles.sod_mm,
                        case.carotid_points_mm) for k in VIEW_KEYS]
@@ -116,7 +116,7 @@ def main() -> int:
                         cells.append(None)
                         continue
                     res = test_time_optimise(renderer, views, TTOSchedule(iterations=args.iterations), rig=rig)
-                    cells.append(_errors(case, res.poses))
+                    cells.append(case_errors(case, res.poses))
                 rows.append((case.name, cells))
                 print(f"{case.name}: " + "; ".join(_cell(c) for c in cells)
                       + f" ({(time.perf_counter() - t0) / 60:.1f} min)", file=sys.stderr, flush=True)

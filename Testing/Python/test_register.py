@@ -222,6 +222,8 @@ def test_tto_reaches_one_mm_on_a_consistent_target(phantom_case):
     assert result.trace[-1]["learning_rates"] is None
     np.testing.assert_allclose(rates.max(axis=0), peak, rtol=0.05)
     np.testing.assert_allclose(rates[-1], C.TTO_FINAL_LR_FRACTION * peak, rtol=1e-6)
+    with pytest.raises(ValueError, match="share of the peak learning rate"):
+        TTOSchedule(final_lr_fraction=0.0)
 
 
 def test_common_axis_search_turns_the_patient_back(phantom_case):

@@ -104,6 +104,11 @@ class TTOSchedule:
     finalists: int = 2
     final_lr_fraction: float = C.TTO_FINAL_LR_FRACTION
 
+    def __post_init__(self) -> None:
+        if not 0 < self.final_lr_fraction <= 1:
+            raise ValueError(f"final_lr_fraction is a share of the peak learning rate in (0, 1], "
+                             f"got {self.final_lr_fraction}")
+
     def coarse_steps(self) -> int:
         return int(round(self.iterations * self.coarse_fraction))
 
