@@ -68,6 +68,12 @@ PAPER_TTO_FINAL_LR_FRACTION: Final = 1.0 / (TTO_DIV_FACTOR * 1e4)
 TTO_FINAL_LR_FRACTION: Final = 0.1
 TTO_TRANSLATION_SCALE_MM: Final = 200.0
 TTO_NCC_WEIGHT: Final = 0.5
+#: Ours: the objective's fitted silhouette (``register.objective.fit_like_target``) models the MAP's
+#: brightness as a + b u + c exp(k u), u the DRR over its 99.5th percentile inside the DSA mask: quantum
+#: noise (log domain) has an sd growing like exp(attenuation / 2), and the thickest head path attenuates
+#: about e^-4, so k = 2 (docs/objective_real_heads.md).
+SILHOUETTE_NOISE_EXPONENT: Final = 2.0
+SILHOUETTE_NORM_PERCENTILE: Final = 99.5
 BIPLANAR_WEIGHT: Final = 0.1
 
 # ------------------------------------------------------- DSA preprocessing

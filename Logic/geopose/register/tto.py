@@ -40,7 +40,7 @@ from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
 from .biplane import common_axis, patient_pose, valley_turn, view_poses
-from .objective import Objective, combine
+from .objective import Objective, combine, fit_like_target
 from .opacified import VesselSelection, read_opacified, vessel_shift_mm
 from .progress import Monitor
 
@@ -223,12 +223,15 @@ class _Images:
         target, mask, columns, vessels, det, drr = self.levels[name, size]
         img = drr(pose, detector=det, channels=self.channels)
         image = img[:, :1]
-        if self.objective.clip_drr:
+        model = self.objective.silhouette if size == "full" else self.objective.coarse_silhouette
+        if model == "clipped":
             with torch.no_grad():
                 support = image[0, 0][:, columns] if bool(columns.any()) else image[0, 0]
                 q = torch.tensor(self.objective.clip_percentiles, dtype=support.dtype, device=support.device) / 100.0
                 lo, hi = torch.quantile(support.flatten(), q)
             image = (torch.minimum(torch.maximum(image, lo), hi) - lo) * mask
+        elif model == "fitted":
+            image = fit_like_target(image[0, 0], target[0, 0], mask[0, 0], xp=torch)[None, None]
         sim = mncc_similarity(target, image)
         dice = generalized_dice_loss(torch.sigmoid(img[:, 1:2]), mask)
         vessel = ncc_similarity(vessels, img[:, 2:3]) if self.vessel_term[name] else None
