@@ -1,18 +1,22 @@
 """Shared command line of the benchmarks on held-out phantom subjects: seed ranges
 (refused if the shipped models were trained on them), phantom spacing, threads, and the
-Markdown document the table goes to."""
+Markdown document the table goes to; and the loop over real-head cases and phantoms that
+the per-case benchmarks share."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
+import time
 from pathlib import Path
+from typing import Callable
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
 
-from geopose.bench.cases import seed_range, training_seeds  # noqa: E402
+from geopose.bench.cases import BenchCase, ge_head_case, headsq_case, phantom_case, seed_range, training_seeds  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
 
 
@@ -33,6 +37,63 @@ def parse_heldout_args(description: str, default_seeds: str) -> tuple[argparse.N
     if clash:
         raise SystemExit(f"seeds {sorted(clash)} were used to train the shipped models: choose held-out seeds")
     return args, seeds
+
+
+def error_cell(err: tuple[float, float, float | None]) -> str:
+    """``rotation (deg) / source position (mm) [/ mPCD (mm)]`` of one case's errors."""
+    rot, src, mpcd = err
+    return f"{rot:.2f} / {src:.1f}" + ("" if mpcd is None else f" / {mpcd:.2f}")
+
+
+def run_cases(description: str, default_seeds: str, default_threads: int,
+              measure: Callable[[BenchCase], list]) -> tuple[argparse.Namespace, list[tuple[BenchCase, list]]]:
+    """Parse ``--headsq --ge-head --real-seeds --seeds --spacing-mm --threads --doc``, build the real-head
+    cases (plain, then with arteries, per head) and the held-out phantoms one at a time, and return the
+    arguments with ``(case, measure(case))`` per case (``measure`` gives cells of :func:`error_cell`'s form;
+    each row is printed to stderr as it comes)."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--headsq", help="headsq quarter_sidecar.mhd")
+    ap.add_argument("--ge-head", help="the GE head CT DICOM folder")
+    ap.add_argument("--real-seeds", type=seed_range, default=seed_range("0-2"), help="real-head case seeds, e.g. 0-2")
+    ap.add_argument("--seeds", nargs="*", type=seed_range, default=[seed_range(s) for s in default_seeds.split()],
+                    help=f"held-out phantom seed ranges, e.g. {default_seeds}")
+    ap.add_argument("--spacing-mm", type=float, default=2.0, help="phantom voxel spacing (mm)")
+    ap.add_argument("--threads", type=int, default=default_threads)
+    ap.add_argument("--doc", type=Path, default=None, help="Markdown file to write the table to")
+    args = ap.parse_args()
+    seeds = [s for group in args.seeds for s in group]
+    clash = training_seeds(default_models_dir() / "manifest.json") & set(seeds)
+    if clash:
+        raise SystemExit(f"seeds {sorted(clash)} were used to train the shipped models: choose held-out seeds")
+    torch.set_num_threads(args.threads)
+    rows: list[tuple[BenchCase, list]] = []
+    t0 = time.perf_counter()
+
+    def cases(tmp: Path):
+        for path, make in ((args.headsq, headsq_case), (args.ge_head, ge_head_case)):
+            for arteries in (False, True):
+                for seed in (args.real_seeds if path else []):
+                    yield make(path, seed=seed, arteries=arteries)
+        for seed in seeds:
+            yield phantom_case(seed, tmp / str(seed), args.spacing_mm)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for case in cases(Path(tmp)):
+            rows.append((case, measure(case)))
+            print(f"{case.name}: " + "; ".join(error_cell(c) for c in rows[-1][1])
+                  + f" ({(time.perf_counter() - t0) / 60:.1f} min)", file=sys.stderr, flush=True)
+    return args, rows
+
+
+def case_groups(rows: list[tuple[BenchCase, list]]) -> dict[str, list[list]]:
+    """The rows' cells by kind of case: plain real heads, real heads with arteries, phantoms (empty kinds left out)."""
+    phantom = lambda case: case.name.startswith("phantom")  # noqa: E731
+    groups = {
+        "plain real heads": [cells for case, cells in rows if case.carotid_points_mm is None],
+        "real heads with arteries": [cells for case, cells in rows if case.carotid_points_mm is not None and not phantom(case)],
+        "phantoms": [cells for case, cells in rows if phantom(case)],
+    }
+    return {name: picked for name, picked in groups.items() if picked}
 
 
 def publish(table: str, doc: Path | None, title: str, intro: str) -> None:
