@@ -71,7 +71,7 @@ TTO_NCC_WEIGHT: Final = 0.5
 #: Ours: the objective's fitted silhouette (``register.objective.fit_like_target``) models the MAP's
 #: brightness as a + b u + c exp(k u), u the DRR over its 99.5th percentile inside the DSA mask: quantum
 #: noise (log domain) has an sd growing like exp(attenuation / 2), and the thickest head path attenuates
-#: about e^-4, so k = 2 (docs/objective_real_heads.md).
+#: about e^-4, so k = 2 (docs/silhouette.md).
 SILHOUETTE_NOISE_EXPONENT: Final = 2.0
 SILHOUETTE_NORM_PERCENTILE: Final = 99.5
 BIPLANAR_WEIGHT: Final = 0.1
