@@ -19,7 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_objective_real import case_errors  # noqa: E402
-from heldout import case_groups, error_cell, publish, run_cases  # noqa: E402
+from heldout import case_groups, case_table, publish, run_cases  # noqa: E402
 
 from geopose import contract as C  # noqa: E402
 from geopose.bench.cases import BenchCase  # noqa: E402
@@ -49,9 +49,7 @@ def main() -> int:
     def summary(name: str, picked: list[list], what) -> str:
         return f"| **{name}** | " + " | ".join(what([cells[i] for cells in picked]) for i in range(len(FLOORS))) + " |"
 
-    lines = ["| case | " + " | ".join(f"anneal to {_label(f)} of the peak" for f in FLOORS) + " |",
-             "|---|" + "---:|" * len(FLOORS)]
-    lines += [f"| {case.name} | " + " | ".join(error_cell(c) for c in cells) + " |" for case, cells in rows]
+    lines = case_table([f"anneal to {_label(f)} of the peak" for f in FLOORS], rows)
     for name, picked in case_groups(rows).items():
         if name == "phantoms":
             lines.append(summary("phantoms: mean mPCD (mm)", picked, lambda c: f"{np.mean([x[2] for x in c]):.2f}"))

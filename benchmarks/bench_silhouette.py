@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_objective_real import case_errors  # noqa: E402
-from heldout import case_groups, error_cell, publish, run_cases  # noqa: E402
+from heldout import case_groups, case_table, publish, run_cases  # noqa: E402
 
 from geopose.bench.cases import BenchCase  # noqa: E402
 from geopose.register.biplane import nominal_poses  # noqa: E402
@@ -50,8 +50,7 @@ def _from_truth(case: BenchCase) -> list[tuple[float, float, float | None]]:
 
 def main() -> int:
     args, rows = run_cases(__doc__.splitlines()[0], "5000-5005", 2, _from_truth)
-    lines = ["| case | " + " | ".join(MODELS) + " |", "|---|" + "---:|" * len(MODELS)]
-    lines += [f"| {case.name} | " + " | ".join(error_cell(c) for c in cells) + " |" for case, cells in rows]
+    lines = case_table(list(MODELS), rows)
     lines += [f"| **{name}: mean rotation / worst source** | " + " | ".join(
         f"{np.mean([cells[i][0] for cells in picked]):.2f} / {max(cells[i][1] for cells in picked):.1f}"
         for i in range(len(MODELS))) + " |" for name, picked in case_groups(rows).items()]

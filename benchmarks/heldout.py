@@ -85,6 +85,13 @@ def run_cases(description: str, default_seeds: str, default_threads: int,
     return args, rows
 
 
+def case_table(columns: list[str], rows: list[tuple[BenchCase, list]]) -> list[str]:
+    """Markdown lines of a per-case table: a header with ``columns``, then one row of :func:`error_cell`
+    cells per case."""
+    return (["| case | " + " | ".join(columns) + " |", "|---|" + "---:|" * len(columns)]
+            + [f"| {case.name} | " + " | ".join(error_cell(c) for c in cells) + " |" for case, cells in rows])
+
+
 def case_groups(rows: list[tuple[BenchCase, list]]) -> dict[str, list[list]]:
     """The rows' cells by kind of case: plain real heads, real heads with arteries, phantoms (empty kinds left out)."""
     phantom = lambda case: case.name.startswith("phantom")  # noqa: E731

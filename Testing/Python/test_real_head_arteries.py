@@ -198,7 +198,7 @@ def test_on_a_plain_real_head_the_tto_from_the_truth_stays_near_it(plain):
     ends = {}
     for model in ("fitted", "clipped"):
         poses = run_tto(renderer, tto_views(prep.views, plain.true_poses), rig=rig,
-                                   objective=Objective(silhouette=model)).poses
+                        objective=Objective(silhouette=model)).poses
         ends[model] = [evaluate_pose(poses[k], plain.true_poses[k], run.detector, run.angles.sod_mm, None)
                        for k, run in plain.runs.items()]
     for view in ends["fitted"]:

@@ -79,13 +79,16 @@ class ObjectiveValue:
     vessel_ncc: float | None
 
 
-def clip_like_target(image: np.ndarray, mask: np.ndarray, percentiles: tuple[float, float]) -> np.ndarray:
+def clip_like_target(image: Array, mask: Array, percentiles: tuple[float, float], xp: ModuleType = np) -> Array:
     """A DRR ``(H, W)`` clipped to its ``percentiles`` over the columns ``mask`` touches, shifted to
-    0 and masked: the target's intensity chain (``dsa.preprocess.clip_intensities``) on the DRR."""
-    columns = np.asarray(mask).any(axis=0)
-    support = image[:, columns] if columns.any() else image
-    lo, hi = np.percentile(support, percentiles)
-    return (np.clip(image, lo, hi) - lo) * (np.asarray(mask) > 0)
+    0 and masked: the target's intensity chain (``dsa.preprocess.clip_intensities``) on the DRR.
+    numpy, or torch with ``xp=torch`` (the bounds carry no gradient)."""
+    inside = mask > 0
+    columns = inside.any(0)
+    values = _detached(image)
+    support = values[:, columns] if bool(columns.any()) else values
+    lo, hi = (float(xp.quantile(support, p / 100.0)) for p in percentiles)
+    return (xp.clip(image, lo, hi) - lo) * inside
 
 
 def silhouette_features(image: Array, mask: Array, xp: ModuleType = np) -> Array:
@@ -97,9 +100,15 @@ def silhouette_features(image: Array, mask: Array, xp: ModuleType = np) -> Array
     return xp.stack((u, xp.exp(C.SILHOUETTE_NOISE_EXPONENT * xp.clip(u, None, 1.0)), xp.ones_like(u)))
 
 
+def _detached(a: Array) -> Array:
+    """``a`` detached from any gradient (numpy or torch)."""
+    return a.detach() if hasattr(a, "detach") else np.asarray(a)
+
+
 def _constant(a: Array) -> Array:
     """``a`` in float64, detached from any gradient (numpy or torch)."""
-    return a.detach().double() if hasattr(a, "detach") else np.asarray(a, dtype=np.float64)
+    a = _detached(a)
+    return a.double() if hasattr(a, "double") else a.astype(np.float64)
 
 
 #: The supports the fitted silhouette's weights are tried on: the offset always, the DRR and the noise

@@ -40,7 +40,7 @@ from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
 from .biplane import common_axis, patient_pose, valley_turn, view_poses
-from .objective import Objective, combine, fit_like_target
+from .objective import Objective, clip_like_target, combine, fit_like_target
 from .opacified import VesselSelection, read_opacified, vessel_shift_mm
 from .progress import Monitor
 
@@ -189,13 +189,12 @@ class _Images:
             for size, (target, mask, vessels, det) in (("full", (v.target, v.mask, v.vessels, v.detector)), ("half", _half(v))):
                 drr = renderer.drr(renderer.level_for_pose(v.pose, det))
                 m = (as_t(mask) > 0).float()
-                columns = m[0, 0].amax(0) > 0
-                self.levels[v.name, size] = (as_t(target), m, columns, as_t(vessels), det, drr)
+                self.levels[v.name, size] = (as_t(target), m, as_t(vessels), det, drr)
             if v.name in self.vessel_term:  # a new vessel channel keeps the terms the objective had
                 continue
             # The vessel term only where the CTA has vessels in this view (its channel is not empty).
             with torch.no_grad():
-                _, _, _, _, det, drr = self.levels[v.name, "full"]
+                _, _, _, det, drr = self.levels[v.name, "full"]
                 start = torch.as_tensor(v.pose, dtype=torch.float64, device=renderer.device)[None]
                 self.vessel_term[v.name] = self.objective.vessel_weight > 0 and bool(
                     drr(start, detector=det, channels=(self.channels[2],)).amax() > 0)
@@ -220,16 +219,12 @@ class _Images:
 
         from ..metrics.losses import generalized_dice_loss, mncc_similarity, ncc_similarity
 
-        target, mask, columns, vessels, det, drr = self.levels[name, size]
+        target, mask, vessels, det, drr = self.levels[name, size]
         img = drr(pose, detector=det, channels=self.channels)
         image = img[:, :1]
         model = self.objective.silhouette if size == "full" else self.objective.coarse_silhouette
         if model == "clipped":
-            with torch.no_grad():
-                support = image[0, 0][:, columns] if bool(columns.any()) else image[0, 0]
-                q = torch.tensor(self.objective.clip_percentiles, dtype=support.dtype, device=support.device) / 100.0
-                lo, hi = torch.quantile(support.flatten(), q)
-            image = (torch.minimum(torch.maximum(image, lo), hi) - lo) * mask
+            image = clip_like_target(image[0, 0], mask[0, 0], self.objective.clip_percentiles, xp=torch)[None, None]
         elif model == "fitted":
             image = fit_like_target(image[0, 0], target[0, 0], mask[0, 0], xp=torch)[None, None]
         sim = mncc_similarity(target, image)
@@ -420,7 +415,7 @@ class _Run:
         start = (params.w.detach().clone(), params.v.detach().clone())
         X = params.patient().detach().cpu().numpy()
         rig = {k: A.cpu().numpy() for k, A in params.rig.items()}
-        detectors = {k: self.images.levels[k, "full"][4] for k in self.names}
+        detectors = {k: self.images.levels[k, "full"][3] for k in self.names}
         direction = valley_turn(X, rig, detectors, self.images.valley_points())
         if direction is None:  # no points to project: the bare turn
             direction = (params.prior_axis.cpu().numpy(), np.zeros(3))
