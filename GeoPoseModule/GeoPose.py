@@ -673,7 +673,8 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
                 )
             row = {"view": title, "mNCC": float(view.final_mncc), "silhouette Dice": float(view.silhouette_dice),
                    "quality": view.quality.flag, "reasons": "; ".join(view.quality.reasons),
-                   "registration": result.registration.mode, "TTO start": result.registration.chosen_start,
+                   "registration": result.registration.mode, "Refine start": result.registration.refine_start,
+                   "TTO start": result.registration.chosen_start,
                    "pixel axes (registered)": "\\".join(patient_orientation(poseCentred)),
                    "pixel axes (DICOM angles)": "\\".join(patient_orientation(pose_from_carm_angles(run.angles)))}
             for stage, pose in view.stage_poses.items():

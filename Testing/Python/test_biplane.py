@@ -18,6 +18,7 @@ from geopose.register import render_model_view
 from geopose.register.biplane import (
     Observability,
     axis_disagreement_mm,
+    combined_starts,
     common_axis,
     fuse_patient_poses,
     moved_by,
@@ -27,7 +28,7 @@ from geopose.register.biplane import (
     valley_turn,
     view_poses,
 )
-from geopose.register.refine import greedy_refine_biplane
+from geopose.register.refine import greedy_refine_biplane, refine_from_starts
 from geopose.register.search import similarity_search
 
 SID_MM, SOD_MM = 1200.0, 800.0
@@ -215,6 +216,43 @@ def test_biplane_greedy_fuses_both_views_retries_half_a_rejected_move_and_stops(
     rel = invert(traces["pa"].proposals[3].pose) @ traces["lat"].proposals[3].pose
     np.testing.assert_allclose(rel, invert(RIG["pa"]) @ RIG["lat"], atol=1e-6)
     assert oracle.calls == 6
+
+
+def test_combined_starts_pair_every_rotation_with_every_isocentre():
+    pa, lat = _patient((6.0, -2.0, 1.0), (12.0, -3.0, 40.0)), _patient((-1.0, 4.0, -2.0), (-5.0, 30.0, 2.0))
+    starts = combined_starts({"pa": pa, "lat": lat}, RIG)
+    fused = fuse_patient_poses({"pa": pa, "lat": lat}, RIG)
+    assert len(starts) == 9
+    np.testing.assert_allclose(next(iter(starts.values())), fused, atol=1e-12)  # the fused pose comes first
+    sources = {"fused": fused, "PA": pa, "LAT": lat}
+    for r in sources:
+        for t in sources:
+            X = starts[f"rotation {r}, isocentre {t}"]
+            np.testing.assert_allclose(X[:3, :3], sources[r][:3, :3], atol=1e-12)
+            np.testing.assert_allclose(X[:3, 3], sources[t][:3, 3], atol=1e-12)
+            np.testing.assert_allclose(X[3], [0, 0, 0, 1])
+
+
+def test_refine_from_starts_keeps_the_most_similar_end():
+    renderer = blob_renderer()
+    X_true = _patient()
+    truth = view_poses(X_true, RIG)
+    targets = {k: render_model_view(renderer, truth[k], RENDER_PX) for k in RIG}
+    far, near = _patient((9.0, 4.0, -6.0), (-15.0, 12.0, 20.0)), _patient((4.0, -1.0, 3.0), (8.0, -2.0, 6.0))
+    stay = [np.eye(4)] * 2  # a residual of nothing for each view: the move is rejected and the loop stops
+    towards = [(near @ RIG[k]) @ invert(X_true @ RIG[k]) for k in RIG]
+    # The far start stays put; from the near one Refine answers the truth, then nothing.
+    oracle = QueuedRefine(stay + towards + stay)
+    views = {"pa": C.VIEW_PA, "lat": C.VIEW_LAT_PLUS}
+    result = refine_from_starts(renderer, targets, {"far": far, "near": near}, RIG, views, oracle, RENDER_PX)
+    assert result.start == "near" and oracle.calls == 6
+    for key in RIG:
+        np.testing.assert_allclose(result.traces[key].pose, truth[key], atol=1e-6)
+        np.testing.assert_allclose(result.traces[key].start_pose, near @ RIG[key], atol=1e-12)
+    far_score = np.mean([mncc(targets[k][0, 0], render_model_view(renderer, far @ RIG[k], RENDER_PX)[0, 0]) for k in RIG])
+    assert result.mncc["far"] == pytest.approx(far_score, abs=1e-9)
+    assert result.mncc["near"] == pytest.approx(np.mean([mncc(t[0, 0], t[0, 0]) for t in targets.values()]), abs=1e-6)
+    assert result.mncc["near"] > result.mncc["far"] + 0.05
 
 
 def test_part_way_scales_the_turn_and_the_shift():

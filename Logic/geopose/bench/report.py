@@ -75,9 +75,11 @@ def summarise(cases: list[dict], iterations: int = C.TTO_ITERATIONS) -> dict:
     runtimes = {s: _stat([c["runtimes_s"].get(s) for c in cases]) for s in dict.fromkeys(stages)}
     runtimes[CALIBRATED_INIT] = _stat([sum(c["runtimes_s"].get(s, math.nan) for s in CALIBRATED_INIT_STAGES) for c in cases])
     starts = [c.get("start", {}).get("chosen") for c in cases]
+    refine_starts = [c.get("start", {}).get("refine") for c in cases]
     flags = [f for c in cases for f in c.get("quality", {}).values()]
     summary = {"rows": rows, "view_accuracy": accuracy, "views": len(views), "runtimes_s": runtimes,
                "starts": {s_: starts.count(s_) for s_ in dict.fromkeys(starts) if s_},
+               "refine_starts": {s_: refine_starts.count(s_) for s_ in dict.fromkeys(refine_starts) if s_},
                "quality": {f: flags.count(f) for f in ("ok", "doubtful", "failed")}}
     summary["targets"] = _targets(summary, iterations)
     return summary
@@ -137,6 +139,10 @@ def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int 
         lines += ["Start the default registration's result came from (every distinct start through the TTO's coarse "
                   "steps, the DICOM angles and the best other to the end; the lower objective wins): "
                   + ", ".join(f"{k} {v}" for k, v in summary["starts"].items()) + " (subjects).", ""]
+    if summary.get("refine_starts"):
+        lines += ["Start the default registration's greedy Refine ended best from (every combination of a rotation "
+                  "and an isocentre of the fused Init and each view's; the highest mean mNCC wins): "
+                  + ", ".join(f"{k} {v}" for k, v in summary["refine_starts"].items()) + " (subjects).", ""]
     if summary.get("quality"):
         lines += ["Quality flags of the default registration: "
                   + ", ".join(f"{k} {v}" for k, v in summary["quality"].items()) + " (views).", ""]

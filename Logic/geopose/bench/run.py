@@ -148,6 +148,7 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
     return {"case": case.name, "notes": case.notes + joint.notes, "rows": rows, "views": view_info, "runtimes_s": times,
             "curves": curves, "device": joint.engine["device"], "engine": joint.engine,
             "start": {"chosen": registration.chosen_start, "objective": registration.starts,
+                      "refine": registration.refine_start,
                       "tto_objective": registration.tto_objective},
             "checks": registration.checks,
             "quality": {k: joint.views[k].quality.flag for k in VIEW_KEYS}}

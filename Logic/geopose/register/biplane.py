@@ -22,7 +22,8 @@ from ..geometry.detector import AP_REORIENT, Detector
 from ..geometry.poses import (axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles,
                               project_points)
 
-__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "central_ray",
+__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "combined_starts",
+           "central_ray",
            "common_axis", "turned_about", "moved_by", "part_way", "valley_turn", "axis_disagreement_mm"]
 
 
@@ -89,6 +90,26 @@ def fuse_patient_poses(
     out[:3, :3] = axis_angle_to_matrix(np.linalg.solve(info_r, sum_r)) @ ref[:3, :3]
     out[:3, 3] = np.linalg.solve(info_t, sum_t)
     return out
+
+
+def combined_starts(
+    estimates: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray], observability: Observability = Observability()
+) -> dict[str, np.ndarray]:
+    """Patient poses ``(4, 4)`` that combine the rotation of one estimate with the isocentre of
+    another, the fused pose (:func:`fuse_patient_poses`) among the sources: ``{"rotation A,
+    isocentre B": X}`` for A, B in ``fused`` and the views' keys upper-cased (9 for two views; the
+    first is the fused pose). One view's Init can be right in rotation and wrong in position (or
+    the other way round); greedy Refine from each and the best by the similarity
+    (:func:`.refine.refine_from_starts`) recovers from either."""
+    sources = {"fused": fuse_patient_poses(estimates, nominal, observability),
+               **{key.upper(): np.asarray(X, dtype=np.float64) for key, X in estimates.items()}}
+    starts = {}
+    for rot_name, R in sources.items():
+        for iso_name, T in sources.items():
+            X = np.array(T)
+            X[:3, :3] = R[:3, :3]
+            starts[f"rotation {rot_name}, isocentre {iso_name}"] = X
+    return starts
 
 
 def common_axis(poses: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray]) -> np.ndarray | None:

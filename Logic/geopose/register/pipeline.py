@@ -51,13 +51,13 @@ from ..nets.predictors import ModelSet, load_models, resolve_torch_device
 from ..options import RegistrationOptions
 from ..render.renderer import Renderer, TorchRenderer, make_renderer
 from ..volume import Volume
-from .biplane import axis_disagreement_mm, fuse_patient_poses, nominal_poses, patient_pose, view_poses
+from .biplane import axis_disagreement_mm, combined_starts, fuse_patient_poses, nominal_poses, patient_pose, view_poses
 from .calibration import calibrate, calibrated_init
 from .case import TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, PreparedCase, prepare_case, silhouette_dice
 from .objective import PAPER_OBJECTIVE, objective_value
 from .progress import CancelCheck, Monitor, ProgressCallback
 from .quality import VIEW_DISAGREEMENT_MM, Quality, assess
-from .refine import greedy_refine, greedy_refine_biplane
+from .refine import greedy_refine, refine_from_starts
 from .results import CaseRegistration, InitEstimate, Registration, ViewOutcome
 from .search import similarity_search
 from .tto import PAPER_SCHEDULE, TTOResult, TTOSchedule, TTOView, test_time_optimise, test_time_optimise_starts
@@ -285,12 +285,15 @@ def register_case(
     else:
         init_poses = {key: inits[key].pose_native for key in VIEW_KEYS}
 
-    # 4. Similarity-gated greedy refinement (of the patient pose, or per view).
+    # 4. Similarity-gated greedy refinement (per view, or of the patient pose from every combination
+    #    of the fused and the views' rotations and isocentres, the most similar end kept).
     with _timed(times, "refine", engine):
         targets = {key: case.model_target(key) for key in VIEW_KEYS}
         if joint:
-            refined = greedy_refine_biplane(renderer, targets, X_init, rig, labels, model_set.refine, render_px,
-                                            options.refine_steps, monitor=monitor)
+            from_starts = refine_from_starts(renderer, targets, combined_starts(implied, rig), rig, labels,
+                                             model_set.refine, render_px, options.refine_steps, monitor=monitor)
+            refined = from_starts.traces
+            registration.refine_start, registration.refine_starts = from_starts.start, from_starts.mncc
         else:
             refined = {key: greedy_refine(renderer, targets[key], init_poses[key], inits[key].view, model_set.refine,
                                           render_px, options.refine_steps, monitor) for key in VIEW_KEYS}

@@ -205,6 +205,10 @@ def build_record(
             "patient_pose_centred": None if case.registration.patient_pose is None else _m(case.registration.patient_pose),
             "nominal_pose_centred": {k: _m(A) for k, A in case.registration.rig.items()},
             "checks": case.registration.checks,
+            "refine_start": case.registration.refine_start,
+            "refine_start_doc": "biplane-rigid: greedy Refine ran from every combination of a rotation and an isocentre "
+            "of the fused Init and each view's Init; the end with the highest mean mNCC (refine_start_mncc) was kept",
+            "refine_start_mncc": case.registration.refine_starts,
             "similarity_search": _search_entry(case),
         },
         "calibration": {

@@ -12,6 +12,7 @@ paper); :func:`greedy_refine_biplane` one patient pose seen by both arms.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np
@@ -26,7 +27,7 @@ from .calibration import render_model_view
 from .progress import Monitor
 from .results import Proposal, RefineTrace
 
-__all__ = ["greedy_refine", "greedy_refine_biplane"]
+__all__ = ["greedy_refine", "greedy_refine_biplane", "refine_from_starts", "StartsRefined"]
 
 
 def greedy_refine(
@@ -114,3 +115,36 @@ def greedy_refine_biplane(
         traces[k].pose, traces[k].mncc = X @ rig[k], scores[k]
     monitor.step("refine", 1.0, f"{traces[keys[0]].accepted} of {len(traces[keys[0]].proposals)} proposals accepted")
     return traces
+
+
+@dataclass
+class StartsRefined:
+    """Greedy Refine of one patient pose from several starts: the winning start's name, its
+    traces per view (:func:`greedy_refine_biplane`) and every start's final mean mNCC."""
+
+    start: str
+    traces: dict[str, RefineTrace]
+    mncc: dict[str, float]
+
+
+def refine_from_starts(
+    renderer: Renderer,
+    targets: Mapping[str, np.ndarray],
+    starts: Mapping[str, np.ndarray],
+    rig: Mapping[str, np.ndarray],
+    views: Mapping[str, int],
+    refine: RefinePredictor,
+    render_px: int,
+    max_proposals: int = C.GREEDY_MAX_PROPOSALS,
+    monitor: Monitor | None = None,
+) -> StartsRefined:
+    """:func:`greedy_refine_biplane` from each patient pose in ``starts`` ``{name: (4, 4)}``; the
+    end with the highest mean mNCC of the views wins (the first in ``starts`` on a tie)."""
+    monitor = monitor or Monitor()
+    ends: dict[str, dict[str, RefineTrace]] = {}
+    for i, (name, X) in enumerate(starts.items()):
+        ends[name] = greedy_refine_biplane(renderer, targets, X, rig, views, refine, render_px, max_proposals,
+                                           monitor=monitor.part(i, len(starts), f"start {i + 1}/{len(starts)}"))
+    scores = {name: float(np.mean([t.mncc for t in traces.values()])) for name, traces in ends.items()}
+    best = max(scores, key=scores.get)
+    return StartsRefined(best, ends[best], scores)

@@ -120,8 +120,10 @@ class Registration:
     the finalists' final objective (``tto_objective``), the start the result came from
     (``chosen_start``); the opacified vessels the TTO read after its coarse steps
     (``vessel_selection``, ``opacified.py``; None: not read), by which alone ``tto_objective``
-    compares the finalists; the consistency ``checks`` of the two views; the similarity search
-    after greedy Refine (``search``; None: it did not run)."""
+    compares the finalists; the consistency ``checks`` of the two views; the start of the
+    greedy Refine that won (``refine_start``, :func:`.biplane.combined_starts`) with every start's
+    final mean mNCC (``refine_starts``); the similarity search after greedy Refine (``search``;
+    None: it did not run)."""
 
     mode: str
     rig: dict[str, np.ndarray] = field(default_factory=dict)
@@ -132,6 +134,8 @@ class Registration:
     tto_objective: dict[str, float] = field(default_factory=dict)
     vessel_selection: "VesselSelection | None" = None
     checks: dict = field(default_factory=dict)
+    refine_start: str = ""
+    refine_starts: dict[str, float] = field(default_factory=dict)
     search: SearchTrace | None = None
 
 
