@@ -52,7 +52,8 @@ def _result(poses: dict[str, np.ndarray]) -> SimpleNamespace:
             prepared=SimpleNamespace(map=np.full(DET.shape, 7.0 + n, np.float32)),
         )
     return SimpleNamespace(views=views, runtimes_s={"init": 0.02, "total": 1.5}, engine={"backend": "torch", "device": "cpu"},
-                           registration=SimpleNamespace(mode="biplane-rigid", chosen_start="Refine"))
+                           registration=SimpleNamespace(mode="biplane-rigid", refine_start="rotation fused, isocentre PA",
+                                                          chosen_start="Refine"))
 
 
 def test_module_metadata(module):
@@ -100,6 +101,7 @@ def test_add_result_nodes_places_every_output(module):
     assert float(table.GetCellText(0, cols.index("init to final (mm)"))) == pytest.approx(5.0)
     assert float(table.GetCellText(0, cols.index("runtime total (s)"))) == 1.5
     assert table.GetCellText(0, cols.index("registration")) == "biplane-rigid"
+    assert table.GetCellText(1, cols.index("Refine start")) == "rotation fused, isocentre PA"
     # The pixel axes of the registered pose and of the run's angles (PA at primary 0: L\F; LAT at -90: A\F).
     assert table.GetCellText(0, cols.index("pixel axes (DICOM angles)")) == "L\\F"
     assert table.GetCellText(1, cols.index("pixel axes (DICOM angles)")) == "A\\F"
