@@ -220,8 +220,8 @@ def test_biplane_greedy_fuses_both_views_retries_half_a_rejected_move_and_stops(
 
 def test_combined_starts_pair_every_rotation_with_every_isocentre():
     pa, lat = _patient((6.0, -2.0, 1.0), (12.0, -3.0, 40.0)), _patient((-1.0, 4.0, -2.0), (-5.0, 30.0, 2.0))
-    starts = combined_starts({"pa": pa, "lat": lat}, RIG)
     fused = fuse_patient_poses({"pa": pa, "lat": lat}, RIG)
+    starts = combined_starts({"pa": pa, "lat": lat}, fused)
     assert len(starts) == 9
     np.testing.assert_allclose(next(iter(starts.values())), fused, atol=1e-12)  # the fused pose comes first
     sources = {"fused": fused, "PA": pa, "LAT": lat}

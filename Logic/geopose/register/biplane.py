@@ -92,16 +92,14 @@ def fuse_patient_poses(
     return out
 
 
-def combined_starts(
-    estimates: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray], observability: Observability = Observability()
-) -> dict[str, np.ndarray]:
+def combined_starts(estimates: Mapping[str, np.ndarray], fused: np.ndarray) -> dict[str, np.ndarray]:
     """Patient poses ``(4, 4)`` that combine the rotation of one estimate with the isocentre of
-    another, the fused pose (:func:`fuse_patient_poses`) among the sources: ``{"rotation A,
-    isocentre B": X}`` for A, B in ``fused`` and the views' keys upper-cased (9 for two views; the
-    first is the fused pose). One view's Init can be right in rotation and wrong in position (or
-    the other way round); greedy Refine from each and the best by the similarity
+    another, the ``fused`` pose (:func:`fuse_patient_poses` of ``estimates``) among the sources:
+    ``{"rotation A, isocentre B": X}`` for A, B in ``fused`` and the views' keys upper-cased (9 for
+    two views; the first is the fused pose). One view's Init can be right in rotation and wrong in
+    position (or the other way round); greedy Refine from each and the best by the similarity
     (:func:`.refine.refine_from_starts`) recovers from either."""
-    sources = {"fused": fuse_patient_poses(estimates, nominal, observability),
+    sources = {"fused": np.asarray(fused, dtype=np.float64),
                **{key.upper(): np.asarray(X, dtype=np.float64) for key, X in estimates.items()}}
     starts = {}
     for rot_name, R in sources.items():

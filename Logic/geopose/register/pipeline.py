@@ -290,7 +290,7 @@ def register_case(
     with _timed(times, "refine", engine):
         targets = {key: case.model_target(key) for key in VIEW_KEYS}
         if joint:
-            from_starts = refine_from_starts(renderer, targets, combined_starts(implied, rig), rig, labels,
+            from_starts = refine_from_starts(renderer, targets, combined_starts(implied, X_init), rig, labels,
                                              model_set.refine, render_px, options.refine_steps, monitor=monitor)
             refined = from_starts.traces
             registration.refine_start, registration.refine_starts = from_starts.start, from_starts.mncc
