@@ -177,14 +177,17 @@ def test_the_valley_turn_moves_the_projections_least_and_the_tto_moves_along_it(
 
 
 class QueuedRefine:
-    """A Refine network answering queued residuals ``D`` in call order (the caller applies ``inverse(D) @ T``)."""
+    """A Refine network answering queued residuals ``D`` in order, one per image of each batch (the
+    caller applies ``inverse(D) @ T``); ``answered`` counts them and ``batches`` the batch sizes."""
 
     def __init__(self, residuals: list[np.ndarray]):
-        self.residuals, self.calls = list(residuals), 0
+        self.residuals, self.answered, self.batches = list(residuals), 0, []
 
     def predict_residual(self, target, render, view):
-        self.calls += 1
-        return np.asarray(self.residuals.pop(0))[None]
+        assert len(target) == len(render)
+        self.answered += len(render)
+        self.batches.append(len(render))
+        return np.stack([np.asarray(self.residuals.pop(0)) for _ in range(len(render))])
 
 
 def test_biplane_greedy_fuses_both_views_retries_half_a_rejected_move_and_stops():
@@ -215,7 +218,7 @@ def test_biplane_greedy_fuses_both_views_retries_half_a_rejected_move_and_stops(
     # Every proposal is one patient pose: the views' proposed poses keep the rig's relative pose.
     rel = invert(traces["pa"].proposals[3].pose) @ traces["lat"].proposals[3].pose
     np.testing.assert_allclose(rel, invert(RIG["pa"]) @ RIG["lat"], atol=1e-6)
-    assert oracle.calls == 6
+    assert oracle.answered == 6
 
 
 def test_combined_starts_pair_every_rotation_with_every_isocentre():
@@ -241,11 +244,12 @@ def test_refine_from_starts_keeps_the_most_similar_end():
     far, near = _patient((9.0, 4.0, -6.0), (-15.0, 12.0, 20.0)), _patient((4.0, -1.0, 3.0), (8.0, -2.0, 6.0))
     stay = [np.eye(4)] * 2  # a residual of nothing for each view: the move is rejected and the loop stops
     towards = [(near @ RIG[k]) @ invert(X_true @ RIG[k]) for k in RIG]
-    # The far start stays put; from the near one Refine answers the truth, then nothing.
-    oracle = QueuedRefine(stay + towards + stay)
+    # The far start stays put; from the near one Refine answers the truth, then nothing. The starts run
+    # in lockstep, one batch per view: (far, near) for PA, then for LAT, then the near start alone.
+    oracle = QueuedRefine([stay[0], towards[0], stay[1], towards[1]] + stay)
     views = {"pa": C.VIEW_PA, "lat": C.VIEW_LAT_PLUS}
     result = refine_from_starts(renderer, targets, {"far": far, "near": near}, RIG, views, oracle, RENDER_PX)
-    assert result.start == "near" and oracle.calls == 6
+    assert result.start == "near" and oracle.batches == [2, 2, 1, 1]
     for key in RIG:
         np.testing.assert_allclose(result.traces[key].pose, truth[key], atol=1e-6)
         np.testing.assert_allclose(result.traces[key].start_pose, near @ RIG[key], atol=1e-12)

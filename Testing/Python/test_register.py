@@ -77,15 +77,17 @@ class OracleInit:
 
 
 class OracleRefine:
-    """Answers queued residuals ``D`` (the caller applies ``inverse(D) @ T``)."""
+    """Answers queued residuals ``D`` in order, one per image of a batch (identity once the queue is
+    empty; the caller applies ``inverse(D) @ T``); ``answered`` counts them."""
 
     def __init__(self, residuals: list[np.ndarray]):
         self.residuals = list(residuals)
-        self.calls = 0
+        self.answered = 0
 
     def predict_residual(self, target, render, view):
-        self.calls += 1
-        return np.asarray(self.residuals.pop(0)).reshape(1, 4, 4) if self.residuals else np.eye(4)[None]
+        self.answered += len(render)
+        return np.stack([np.asarray(self.residuals.pop(0)).reshape(4, 4) if self.residuals else np.eye(4)
+                         for _ in range(len(render))])
 
 
 def oracle_models(init: OracleInit, refine: OracleRefine) -> ModelSet:
@@ -147,7 +149,7 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
         assert len(view.refine.proposals) == 2 and not any(p.accepted for p in view.refine.proposals)
         np.testing.assert_allclose(view.refine.pose[:3, :3], start[key][:3, :3], atol=1e-3)
         np.testing.assert_allclose(view.refine.pose[:3, 3], start[key][:3, 3], atol=0.5)
-    assert refine.calls == 2 * 9  # both views once from each of the nine combined starts
+    assert refine.answered == 2 * 9  # both views once from each of the nine combined starts
     assert result.registration.refine_start in result.registration.refine_starts
     assert {"prepare", "calibration", "init", "refine", "search", "tto", "done"} <= set(stages)
     assert result.engine["render_px"] == ORACLE_RENDER_PX
@@ -308,7 +310,7 @@ def test_greedy_accepts_improvement_and_stops_at_first_rejection():
     oracle = OracleRefine([D_good, D_bad, np.eye(4)])
     trace = greedy_refine(renderer, target, start, C.VIEW_PA, oracle, ORACLE_RENDER_PX, max_proposals=5)
     assert [p.accepted for p in trace.proposals] == [True, False]
-    assert oracle.calls == 2
+    assert oracle.answered == 2
     np.testing.assert_allclose(trace.pose, T_true, atol=1e-9)
     assert trace.mncc > trace.start_mncc
     assert trace.mncc == pytest.approx(mncc(target[0, 0], render_model_view(renderer, T_true, ORACLE_RENDER_PX)[0, 0]))

@@ -82,39 +82,8 @@ def greedy_refine_biplane(
     once more at ``retry_fraction`` of its size (rotation and isocentre shift scaled alike) before
     the loop stops. Returns each view's trace (poses ``X @ A_v``, that view's mNCC, the joint
     accept flags; a retry is a proposal of its own)."""
-    monitor = monitor or Monitor()
-    keys = list(rig)
-    X = np.asarray(patient, dtype=np.float64)
-
-    def render_all(X_: np.ndarray) -> tuple[dict, dict]:
-        images = {k: render_model_view(renderer, X_ @ rig[k], render_px) for k in keys}
-        return images, {k: mncc(targets[k][0, 0], images[k][0, 0]) for k in keys}
-
-    images, scores = render_all(X)
-    traces = {k: RefineTrace(X @ rig[k], scores[k], X @ rig[k], scores[k]) for k in keys}
-    score = float(np.mean(list(scores.values())))
-    for step in range(max_proposals):
-        monitor.step("refine", step / max_proposals, f"biplane proposal {step + 1}/{max_proposals}")
-        implied = {}
-        for k in keys:
-            camera = invert(refine.predict_residual(targets[k], images[k], views[k])[0]) @ (X @ rig[k])
-            implied[k] = patient_pose(camera, rig[k])
-        move = fuse_patient_poses(implied, rig, observability)
-        for candidate in (move, part_way(X, move, retry_fraction)):
-            cand_images, cand_scores = render_all(candidate)
-            cand_score = float(np.mean(list(cand_scores.values())))
-            accepted = cand_score > score
-            for k in keys:
-                traces[k].proposals.append(Proposal(candidate @ rig[k], cand_scores[k], accepted))
-            if accepted:
-                X, images, scores, score = candidate, cand_images, cand_scores, cand_score
-                break
-        else:
-            break
-    for k in keys:
-        traces[k].pose, traces[k].mncc = X @ rig[k], scores[k]
-    monitor.step("refine", 1.0, f"{traces[keys[0]].accepted} of {len(traces[keys[0]].proposals)} proposals accepted")
-    return traces
+    return refine_from_starts(renderer, targets, {"start": patient}, rig, views, refine, render_px, max_proposals,
+                              observability, monitor, retry_fraction).traces
 
 
 @dataclass
@@ -136,15 +105,55 @@ def refine_from_starts(
     refine: RefinePredictor,
     render_px: int,
     max_proposals: int = C.GREEDY_MAX_PROPOSALS,
+    observability: Observability = Observability(),
     monitor: Monitor | None = None,
+    retry_fraction: float = C.GREEDY_RETRY_FRACTION,
 ) -> StartsRefined:
     """:func:`greedy_refine_biplane` from each patient pose in ``starts`` ``{name: (4, 4)}``; the
-    end with the highest mean mNCC of the views wins (the first in ``starts`` on a tie)."""
+    end with the highest mean mNCC of the views wins (the first in ``starts`` on a tie).
+
+    The starts run in lockstep: each step runs Refine once per view on every start still
+    improving (one batch), so each start makes the same moves as it would alone."""
     monitor = monitor or Monitor()
-    ends: dict[str, dict[str, RefineTrace]] = {}
-    for i, (name, X) in enumerate(starts.items()):
-        ends[name] = greedy_refine_biplane(renderer, targets, X, rig, views, refine, render_px, max_proposals,
-                                           monitor=monitor.part(i, len(starts), f"start {i + 1}/{len(starts)}"))
-    scores = {name: float(np.mean([t.mncc for t in traces.values()])) for name, traces in ends.items()}
-    best = max(scores, key=scores.get)
-    return StartsRefined(best, ends[best], scores)
+    keys = list(rig)
+    X = {name: np.asarray(pose, dtype=np.float64) for name, pose in starts.items()}
+
+    def render_all(poses: Mapping[str, np.ndarray]) -> tuple[dict, dict]:
+        """Model-view images ``{start: {view: (1, 1, 256, 256)}}`` and their mNCC ``{start: {view: float}}``."""
+        images = {n: {k: render_model_view(renderer, pose @ rig[k], render_px) for k in keys} for n, pose in poses.items()}
+        return images, {n: {k: mncc(targets[k][0, 0], im[k][0, 0]) for k in keys} for n, im in images.items()}
+
+    images, scores = render_all(X)
+    traces = {n: {k: RefineTrace(X[n] @ rig[k], scores[n][k], X[n] @ rig[k], scores[n][k]) for k in keys} for n in X}
+    score = {n: float(np.mean(list(scores[n].values()))) for n in X}
+    running = list(X)
+    for step in range(max_proposals):
+        if not running:
+            break
+        monitor.step("refine", step / max_proposals,
+                     f"proposal {step + 1}/{max_proposals}, {len(running)} of {len(X)} start(s) improving")
+        residuals = {k: refine.predict_residual(np.repeat(targets[k], len(running), axis=0),
+                                                np.concatenate([images[n][k] for n in running]), views[k]) for k in keys}
+        moves = {n: fuse_patient_poses({k: patient_pose(invert(residuals[k][i]) @ (X[n] @ rig[k]), rig[k]) for k in keys},
+                                       rig, observability) for i, n in enumerate(running)}
+        candidates, improved = dict(moves), []
+        for retry in (False, True):
+            cand_images, cand_scores = render_all(candidates)
+            for n, candidate in candidates.items():
+                cand_score = float(np.mean(list(cand_scores[n].values())))
+                accepted = cand_score > score[n]
+                for k in keys:
+                    traces[n][k].proposals.append(Proposal(candidate @ rig[k], cand_scores[n][k], accepted))
+                if accepted:
+                    X[n], images[n], scores[n], score[n] = candidate, cand_images[n], cand_scores[n], cand_score
+                    improved.append(n)
+            if not retry:
+                candidates = {n: part_way(X[n], moves[n], retry_fraction) for n in candidates if n not in improved}
+        running = [n for n in running if n in improved]
+    for n in X:
+        for k in keys:
+            traces[n][k].pose, traces[n][k].mncc = X[n] @ rig[k], scores[n][k]
+    best = max(score, key=score.get)
+    trace = traces[best][keys[0]]
+    monitor.step("refine", 1.0, f"best from {best}: {trace.accepted} of {len(trace.proposals)} proposals accepted")
+    return StartsRefined(best, traces[best], score)
