@@ -21,7 +21,7 @@ from geopose.phantom import labels as L
 from geopose.phantom import make_subject, with_arteries
 from geopose.phantom.anatomy import inside_cavity_margin, sample_head
 from geopose.phantom.dsa import INJECTIONS
-from geopose.phantom.real_head import UNSCANNED_BELOW_HU, HeadFit, fit_head
+from geopose.phantom.real_head import UNSCANNED_BELOW_HU, HeadFit, deformed_head, fit_head
 from geopose.register.biplane import nominal_poses
 from geopose.register.case import prepare_case
 from geopose.register.evaluate import evaluate_pose
@@ -103,6 +103,40 @@ def test_input_is_kept_and_labels_follow_the_phantom_convention(made):
     assert vessel.sum() > 300
     # artery labels carry INTRACRANIAL_OFFSET exactly where the cranium mask is
     assert np.array_equal(labels[vessel] > L.INTRACRANIAL_OFFSET, cranium[vessel])
+
+
+def test_deformed_head_is_a_reproducible_smooth_variant_on_the_same_grid(made):
+    ct_before, labels_before = made.cta.array.copy(), made.labels.array.copy()
+    ct, labels = deformed_head(made.cta, made.labels, 3)
+    assert np.array_equal(made.cta.array, ct_before) and np.array_equal(made.labels.array, labels_before)
+    np.testing.assert_array_equal(ct.ijk_to_ras, made.cta.ijk_to_ras)
+    assert labels.array.dtype == made.labels.array.dtype and set(np.unique(labels.array)) <= set(np.unique(labels_before))
+    again, _ = deformed_head(made.cta, made.labels, 3)
+    other, _ = deformed_head(made.cta, made.labels, 4)
+    assert np.array_equal(again.array, ct.array) and not np.array_equal(other.array, ct.array)
+    # No deformation asked: the same voxels back (linear interpolation at the voxel centres).
+    same, same_labels = deformed_head(made.cta, made.labels, 3, amplitude_mm=0.0, scale_sd=0.0)
+    np.testing.assert_allclose(same.array, ct_before, atol=1e-3)
+    assert np.array_equal(same_labels.array, labels_before)
+    # A few millimetres: the cranium moves but stays mostly where it was.
+    cranium, moved = L.cranium_mask(labels_before), L.cranium_mask(labels.array)
+    dice = 2 * (cranium & moved).sum() / (cranium.sum() + moved.sum())
+    assert 0.7 < dice < 0.99, dice
+    assert ct.metadata["deformed"] == {"seed": 3, "amplitude_mm": 4.0, "scale_sd": 0.05}
+
+
+def test_variants_command_writes_a_training_folder(headsq_path, tmp_path):
+    from geopose.cta import load_cta
+    from geopose.training.population import folder_cases
+
+    assert main(["train", "variants", "--headsq", str(headsq_path), "--arteries", "1,2", "--out", str(tmp_path)]) == 0
+    cases = folder_cases(tmp_path)
+    assert [(c.name, v.name) for c, v in cases] == [("headsq-1.nii.gz", "headsq-1_vessels.nii.gz"),
+                                                    ("headsq-2.nii.gz", "headsq-2_vessels.nii.gz")]
+    first, second = (load_cta(c) for c, _ in cases)
+    vessels = load_cta(cases[0][1], check_hu=False).array
+    assert set(np.unique(vessels)) == {0, 1} and vessels.sum() > 300
+    assert first.array.shape == second.array.shape and not np.array_equal(first.array, second.array)
 
 
 def test_intracranial_arteries_lie_in_the_real_cranium(made, tree):

@@ -346,6 +346,20 @@ def test_shipped_models_verify_and_load():
     assert "view_accuracy_with_metadata" in manifest["validation"]
 
 
+def test_cli_trains_on_several_populations_together(tiny_population, tmp_path):
+    from geopose.cli import main
+    from geopose.nets import read_model_header
+
+    first = save_population(tmp_path / "a.pt", tiny_population[:1], {"source": "phantom", "seeds": [1]})
+    second = save_population(tmp_path / "b.pt", tiny_population[1:], {"source": "folder", "folder": "heads"})
+    assert main(["train", "init", "--population", str(first), str(second), "--out", str(tmp_path / "run"), "--steps", "1",
+                 "--batch-size", "2", "--accumulation", "1", "--width", "8", "--render-px", "32", "--image-px", "64",
+                 "--checkpoint-every", "1", "--device", "cpu"]) == 0
+    header = read_model_header(tmp_path / "run" / "init.pt")
+    assert header["metadata"]["training"]["data"] == {
+        "populations": [{"source": "phantom", "seeds": [1]}, {"source": "folder", "folder": "heads"}]}
+
+
 def test_cli_reports_bad_training_input(tmp_path, capsys):
     from geopose.cli import main
 

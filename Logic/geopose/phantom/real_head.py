@@ -20,15 +20,15 @@ import numpy as np
 import SimpleITK as sitk
 
 from .. import contract as C
-from ..cta import cranium_mask_from_cta, sitk_from_volume
+from ..cta import cranium_mask_from_cta, sitk_from_volume, volume_from_sitk
 from ..errors import InputError
 from ..geometry.frames import RAS_TO_LPS
 from ..volume import Volume
 from . import labels as L
-from .anatomy import HeadParams, inside_cavity_margin, rasterise_head, sample_head
+from .anatomy import HU_AIR, HeadParams, inside_cavity_margin, rasterise_head, sample_head
 from .raster import Grid, rasterise_tube
 
-__all__ = ["HeadFit", "fit_head", "with_arteries"]
+__all__ = ["HeadFit", "fit_head", "with_arteries", "deformed_head"]
 
 #: Voxel size (mm) the fit works at: the CT is block-averaged to about this.
 FIT_SPACING_MM = 4.0
@@ -56,6 +56,11 @@ SAMPLED_FRACTION = 0.25
 HEAD_BOX_MM = ((-130.0, -140.0, -260.0), (130.0, 140.0, 120.0))
 #: Head-frame box (mm) of the cervical spine and the tissue around it that the neck shift is fitted on
 #: (bone and soft tissue compared in HU clipped to ``NECK_HU``), and the box the phantom's neck is drawn in.
+#: Random smooth variants of a real head (:func:`deformed_head`): B-spline control mesh cells per
+#: axis, the sd (mm) of each control point's displacement, and the sd of each axis' scale factor.
+DEFORM_MESH_CELLS = 3
+DEFORM_AMPLITUDE_MM = 4.0
+DEFORM_SCALE_SD = 0.05
 SPINE_BOX_MM = ((-35.0, -45.0, -150.0), (35.0, 6.0, -70.0))
 NECK_BOX_MM = ((-70.0, -70.0, -170.0), (70.0, 70.0, -40.0))
 NECK_HU = (-200.0, 1000.0)
@@ -310,3 +315,28 @@ def with_arteries(cta: Volume, seed: int, *, cranium: Volume | None = None) -> t
     record = {"phantom_seed": int(seed), **fit.record, "vessel_hu": float(vessel_hu)}
     return (Volume(hu, cta.ijk_to_ras.copy(), {**cta.metadata, "arteries": record}),
             cta.like(lab, kind="labels", arteries=record), lines)
+
+
+def deformed_head(
+    cta: Volume, labels: Volume, seed: int, *, amplitude_mm: float = DEFORM_AMPLITUDE_MM, scale_sd: float = DEFORM_SCALE_SD
+) -> tuple[Volume, Volume]:
+    """A random smooth variant of a head CT (HU) and its label map, both on the CT's grid (inputs
+    unchanged): a scale of each axis about the grid centre (factors 1 + N(0, ``scale_sd``)) then a
+    cubic B-spline displacement (``DEFORM_MESH_CELLS`` cells per axis, control points N(0,
+    ``amplitude_mm``) mm). Linear for the CT (air outside), nearest neighbour for the labels."""
+    if labels.array.shape != cta.array.shape:
+        raise InputError(f"labels {labels.array.shape} and CT {cta.array.shape} must share one grid")
+    rng = np.random.default_rng(seed)
+    image, label_image = sitk_from_volume(cta), sitk_from_volume(labels.like(labels.array.astype(np.uint8)))
+    centre = image.TransformContinuousIndexToPhysicalPoint([(n - 1) / 2.0 for n in image.GetSize()])
+    scale = sitk.ScaleTransform(3, [float(f) for f in 1.0 + rng.normal(0.0, scale_sd, 3)])
+    scale.SetCenter(centre)
+    bspline = sitk.BSplineTransformInitializer(image, [DEFORM_MESH_CELLS] * 3)
+    bspline.SetParameters([float(v) for v in rng.normal(0.0, amplitude_mm, len(bspline.GetParameters()))])
+    warp = sitk.CompositeTransform([scale, bspline])
+    ct = sitk.Resample(image, image, warp, sitk.sitkLinear, HU_AIR)
+    lab = sitk.Resample(label_image, label_image, warp, sitk.sitkNearestNeighbor, 0)
+    record = {"seed": int(seed), "amplitude_mm": float(amplitude_mm), "scale_sd": float(scale_sd)}
+    return (volume_from_sitk(ct, {**cta.metadata, "deformed": record}),
+            volume_from_sitk(lab, {**labels.metadata, "deformed": record}).like(
+                sitk.GetArrayFromImage(lab).astype(labels.array.dtype)))

@@ -18,9 +18,10 @@ from ..contract import MODEL_DETECTOR_PX
 from .losses import LossWeights
 from .manifest import file_entry, model_entry, verify_manifest, write_manifest
 from ..nets.manifest import read_manifest
-from .population import folder_population, load_population, phantom_population, save_population
+from .population import folder_population, load_population, phantom_population, phantom_template, save_population
 from .trainer import TrainConfig, train
 from ..errors import InputError
+from ..phantom.real_head import DEFORM_AMPLITUDE_MM, DEFORM_SCALE_SD
 
 
 def _seeds(text: str) -> list[int]:
@@ -45,8 +46,10 @@ def _population(args: argparse.Namespace) -> int:
         subjects, report = phantom_population(args.phantoms, args.spacing, args.template_seed, progress=_say, workers=args.workers)
         recipe = {"source": "phantom", "seeds": args.phantoms, "spacing_mm": args.spacing, "template_seed": args.template_seed, "canonicalisation_error": report}
     else:
-        subjects = folder_population(args.folder, args.template, progress=_say)
-        recipe = {"source": "folder", "folder": str(args.folder), "template": str(args.template) if args.template else None}
+        template = args.template if args.template else phantom_template(args.template_seed, args.spacing)
+        subjects = folder_population(args.folder, template, progress=_say)
+        recipe = {"source": "folder", "folder": str(args.folder),
+                  "template": str(args.template) if args.template else {"phantom_seed": args.template_seed, "spacing_mm": args.spacing}}
     save_population(args.out, subjects, recipe)
     if args.phantoms is not None:
         rot = [r["rotation_deg"] for r in report]
@@ -55,8 +58,33 @@ def _population(args: argparse.Namespace) -> int:
     return 0
 
 
+def _variants(args: argparse.Namespace) -> int:
+    from ..cta import cranium_mask_from_cta, load_cta, save_volume
+    from ..phantom import labels as L
+    from ..phantom.real_head import deformed_head, with_arteries
+
+    if args.headsq:
+        from ..bench.cases import load_headsq
+
+        cta, name = load_headsq(args.headsq), "headsq"
+    else:
+        cta, name = load_cta(args.cta), args.cta.name.split(".")[0]
+    cranium = cranium_mask_from_cta(cta)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for seed in args.arteries:
+        with_vessels, labels, _ = with_arteries(cta, seed, cranium=cranium)
+        ct, lab = deformed_head(with_vessels, labels, seed, amplitude_mm=args.amplitude_mm, scale_sd=args.scale_sd)
+        save_volume(ct, args.out / f"{name}-{seed}.nii.gz")
+        save_volume(lab.like(L.vessel_mask(lab.array).astype("uint8")), args.out / f"{name}-{seed}_vessels.nii.gz")
+        _say(f"{name}-{seed}: arteries of phantom {seed}, deformed")
+    _say(f"wrote {len(args.arteries)} variants to {args.out}; next: geopose train population --folder {args.out}")
+    return 0
+
+
 def _train(args: argparse.Namespace) -> int:
-    subjects, recipe = load_population(args.population)
+    loaded = [load_population(path) for path in args.population]
+    subjects = [subject for population, _ in loaded for subject in population]
+    recipe = loaded[0][1] if len(loaded) == 1 else {"populations": [r for _, r in loaded]}
     config = TrainConfig(
         kind=args.kind,
         steps=args.steps,
@@ -135,7 +163,8 @@ def _ship(args: argparse.Namespace) -> int:
 
 
 def _training_options(p: argparse.ArgumentParser, kind: str) -> None:
-    p.add_argument("--population", required=True, type=Path, help="population cache from `geopose train population`")
+    p.add_argument("--population", required=True, type=Path, nargs="+",
+                   help="population cache(s) from `geopose train population` (several: their subjects together)")
     p.add_argument("--out", required=True, type=Path, help="run folder (checkpoint, log.csv, model); reruns resume")
     p.add_argument("--steps", type=int, default=1000, help="optimiser steps")
     p.add_argument("--max-minutes", type=float, default=None, help="stop (with a checkpoint) after this wall time")
@@ -176,12 +205,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = sub.add_parser("population", help="canonicalise phantoms or a CTA folder into a population cache (.pt)")
     p.add_argument("--phantoms", type=_seeds, default=None, help="phantom seeds, e.g. 100-131")
     p.add_argument("--folder", type=Path, default=None, help="folder of CTAs NAME.nii.gz with NAME_vessels.nii.gz")
-    p.add_argument("--template", type=Path, default=None, help="template CTA (folder mode; default first case)")
+    p.add_argument("--template", type=Path, default=None,
+                   help="template CTA (folder mode; default: the phantom template, the shipped models' frame)")
     p.add_argument("--template-seed", type=int, default=0, help="phantom whose canonical CTA is the template")
     p.add_argument("--spacing", type=float, default=2.0, help="phantom voxel size (mm)")
     p.add_argument("--workers", type=int, default=1, help="parallel processes for phantom subjects")
     p.add_argument("--out", required=True, type=Path)
     p.set_defaults(func=_population)
+    p = sub.add_parser("variants", help="random smooth variants of a real head CT with phantom arteries: a training folder")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--cta", type=Path, help="a head CT without contrast (any format `geopose register` reads)")
+    source.add_argument("--headsq", type=Path, help="VTK's headsq sample (quarter_sidecar.mhd: raw values, upside down)")
+    p.add_argument("--arteries", type=_seeds, required=True, help="phantom seeds whose arteries are fitted in, one variant each")
+    p.add_argument("--amplitude-mm", type=float, default=DEFORM_AMPLITUDE_MM, help="sd of the B-spline control points (mm)")
+    p.add_argument("--scale-sd", type=float, default=DEFORM_SCALE_SD, help="sd of each axis' scale factor")
+    p.add_argument("--out", required=True, type=Path, help="folder for NAME-SEED.nii.gz and NAME-SEED_vessels.nii.gz")
+    p.set_defaults(func=_variants)
     _training_options(sub.add_parser("init", help="train GeoPose-Init"), "init")
     _training_options(sub.add_parser("refine", help="train GeoPose-Refine from a trained Init"), "refine")
     p = sub.add_parser("evaluate", help="held-out metrics of trained models (JSON)")

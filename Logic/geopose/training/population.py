@@ -67,7 +67,9 @@ def subject_from_volumes(name: str, cta: Volume, cranium: np.ndarray, vessels: n
     return TrainingSubject(name, channels, cta.ijk_to_centred, fiducials)
 
 
-def _phantom_template(template_seed: int, spacing_mm: float) -> tuple[Volume, Volume]:
+def phantom_template(template_seed: int, spacing_mm: float) -> tuple[Volume, Volume]:
+    """The canonical CTA of phantom ``template_seed`` at ``spacing_mm`` and its cranium mask: the template
+    every phantom population is registered to."""
     from ..phantom import labels as L
     from ..phantom import make_subject
 
@@ -105,7 +107,7 @@ def phantom_population(
     native-to-canonical transform against the phantom's known one (the truth is
     used only for this report). ``workers`` > 1 builds subjects in parallel processes.
     """
-    template = _phantom_template(template_seed, spacing_mm)
+    template = phantom_template(template_seed, spacing_mm)
     build = partial(_canonical_phantom, spacing_mm=spacing_mm, template=template)
     if workers > 1:
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
@@ -158,16 +160,22 @@ def folder_cases(folder: str | os.PathLike) -> list[tuple[Path, Path]]:
 
 
 def folder_population(
-    folder: str | os.PathLike, template: str | os.PathLike | None = None, progress: Callable[[str], None] | None = None
+    folder: str | os.PathLike,
+    template: str | os.PathLike | tuple[Volume, Volume] | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> list[TrainingSubject]:
     """Canonicalised subjects from a folder of CTAs (HU) with vessel label maps (label > 0 = vessel).
 
-    Cranium masks come from the CTA (bone threshold); every CTA is registered to
-    ``template`` (a CTA file; default the folder's first case) on those masks.
+    Cranium masks come from the CTA (bone threshold); every CTA is registered on those masks to
+    ``template``: a CTA file, a (CTA, cranium mask) pair such as :func:`phantom_template` (the frame
+    the phantom populations and the shipped models share), or None for the folder's first case.
     """
     cases = folder_cases(folder)
-    template_cta = load_cta(template if template is not None else cases[0][0])
-    template_mask = cranium_mask_from_cta(template_cta)
+    if isinstance(template, tuple):
+        template_cta, template_mask = template
+    else:
+        template_cta = load_cta(template if template is not None else cases[0][0])
+        template_mask = cranium_mask_from_cta(template_cta)
     subjects = []
     for cta_path, label_path in cases:
         cta = load_cta(cta_path)
