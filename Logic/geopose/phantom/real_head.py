@@ -56,11 +56,6 @@ SAMPLED_FRACTION = 0.25
 HEAD_BOX_MM = ((-130.0, -140.0, -260.0), (130.0, 140.0, 120.0))
 #: Head-frame box (mm) of the cervical spine and the tissue around it that the neck shift is fitted on
 #: (bone and soft tissue compared in HU clipped to ``NECK_HU``), and the box the phantom's neck is drawn in.
-#: Random smooth variants of a real head (:func:`deformed_head`): B-spline control mesh cells per
-#: axis, the sd (mm) of each control point's displacement, and the sd of each axis' scale factor.
-DEFORM_MESH_CELLS = 3
-DEFORM_AMPLITUDE_MM = 4.0
-DEFORM_SCALE_SD = 0.05
 SPINE_BOX_MM = ((-35.0, -45.0, -150.0), (35.0, 6.0, -70.0))
 NECK_BOX_MM = ((-70.0, -70.0, -170.0), (70.0, 70.0, -40.0))
 NECK_HU = (-200.0, 1000.0)
@@ -73,6 +68,11 @@ NECK_MIN_COVER = 0.5
 #: Head-frame heights (mm) over which the neck shift fades in: none above the skull base's underside,
 #: all of it from the second cervical vertebra down.
 NECK_BLEND_MM = (-70.0, -100.0)
+#: Random smooth variants of a real head (:func:`deformed_head`): B-spline control mesh cells per
+#: axis, the sd (mm) of each control point's displacement, and the sd of each axis' scale factor.
+DEFORM_MESH_CELLS = 3
+DEFORM_AMPLITUDE_MM = 4.0
+DEFORM_SCALE_SD = 0.05
 
 
 @dataclass(frozen=True)
