@@ -327,7 +327,7 @@ def deformed_head(
     if labels.array.shape != cta.array.shape:
         raise InputError(f"labels {labels.array.shape} and CT {cta.array.shape} must share one grid")
     rng = np.random.default_rng(seed)
-    image, label_image = sitk_from_volume(cta), sitk_from_volume(labels.like(labels.array.astype(np.uint8)))
+    image, label_image = sitk_from_volume(cta), sitk_from_volume(labels)
     centre = image.TransformContinuousIndexToPhysicalPoint([(n - 1) / 2.0 for n in image.GetSize()])
     scale = sitk.ScaleTransform(3, [float(f) for f in 1.0 + rng.normal(0.0, scale_sd, 3)])
     scale.SetCenter(centre)
