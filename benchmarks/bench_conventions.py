@@ -37,7 +37,7 @@ from conventions_common import (  # noqa: E402
 )
 
 from geopose import contract as C  # noqa: E402
-from geopose.bench.cases import load_headsq  # noqa: E402
+from geopose.phantom.real_head import load_headsq  # noqa: E402
 from geopose.cta import cranium_mask_from_cta, save_volume  # noqa: E402
 from geopose.geometry import (  # noqa: E402
     CArmAngles, Detector, RigidTransform, isopose, pose_from_carm_angles, project_points, project_points_tensor,

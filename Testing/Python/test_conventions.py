@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from geopose import contract as C
-from geopose.bench.cases import load_headsq
+from geopose.phantom.real_head import load_headsq
 from geopose.geometry import CArmAngles, Detector, isopose, pose_from_carm_angles, view_from_primary_angle
 from geopose.render import DRR
 from geopose.volume import Volume

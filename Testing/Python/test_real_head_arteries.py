@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from geopose.bench.cases import headsq_case, load_headsq
+from geopose.bench.cases import headsq_case
 from geopose.bench.report import real_heads_markdown
 from geopose.bench.run import LEARNED_ROW, NATIVE_TTO_ROW
 from geopose.cli import main
@@ -21,7 +21,7 @@ from geopose.phantom import labels as L
 from geopose.phantom import make_subject, with_arteries
 from geopose.phantom.anatomy import inside_cavity_margin, sample_head
 from geopose.phantom.dsa import INJECTIONS
-from geopose.phantom.real_head import UNSCANNED_BELOW_HU, HeadFit, deformed_head, fit_head
+from geopose.phantom.real_head import UNSCANNED_BELOW_HU, HeadFit, deformed_head, fit_head, load_headsq
 from geopose.register.biplane import nominal_poses
 from geopose.register.case import prepare_case
 from geopose.register.evaluate import evaluate_pose

@@ -19,7 +19,7 @@ from ..dsa import DSARun, read_dsa
 from ..phantom import labels as L
 from ..phantom.cli import write_phantom
 from ..phantom.dsa import dsa_renderer, sample_acquisition, sample_injection, simulate_dsa, table_tilt
-from ..phantom.real_head import with_arteries
+from ..phantom.real_head import load_headsq, with_arteries
 from ..dsa.run import LAT_ROLE, PA_ROLE
 from ..geometry import Detector
 from ..register.evaluate import load_truth
@@ -28,15 +28,9 @@ from ..volume import Volume
 from ..errors import InputError
 
 __all__ = [
-    "BenchCase", "phantom_case", "real_head_case", "headsq_case", "ge_head_case", "load_headsq", "training_seeds", "seed_range",
-    "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX",
+    "BenchCase", "phantom_case", "real_head_case", "headsq_case", "ge_head_case", "training_seeds", "seed_range",
 ]
 
-#: The VTK headsq file stores raw values: HU = value - 1024.
-HEADSQ_HU_OFFSET = -1024.0
-#: The headsq header puts the head upside down (superior along RAS -z, the face
-#: still anterior): a 180 deg turn about the anterior axis makes it a supine head CT.
-HEADSQ_HEADER_FIX = np.diag([-1.0, 1.0, -1.0, 1.0])
 #: Matrix cap (px) of the simulated runs: enough for the 256 px model input.
 BENCH_MATRIX_PX = 512
 #: Case-name suffix of a real head CT given a phantom's arteries.
@@ -102,13 +96,6 @@ class _RealHead:
     centerlines: list[dict] = field(default_factory=list)
     cta: Volume | None = None
     labels: Volume | None = None
-
-
-def load_headsq(path: str | Path) -> Volume:
-    """The real head CT ``headsq`` (``quarter_sidecar.mhd``) in HU as a supine head CT: its raw
-    values shifted by ``HEADSQ_HU_OFFSET`` and its upside-down header turned by ``HEADSQ_HEADER_FIX``."""
-    raw = load_cta(path, hu_offset=HEADSQ_HU_OFFSET)
-    return Volume(raw.array, HEADSQ_HEADER_FIX @ raw.ijk_to_ras, dict(raw.metadata, header_fix="180 deg about A"))
 
 
 def real_head_case(name: str, cta: Volume, seed: int, notes: list[str], *, arteries: bool = False) -> BenchCase:

@@ -15,12 +15,13 @@ Frames (mm, RAS axes): the phantom's *head* frame (``anatomy``) and the CT's *ce
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
 from .. import contract as C
-from ..cta import cranium_mask_from_cta, sitk_from_volume, volume_from_sitk
+from ..cta import cranium_mask_from_cta, load_cta, sitk_from_volume
 from ..errors import InputError
 from ..geometry.frames import RAS_TO_LPS
 from ..volume import Volume
@@ -28,7 +29,7 @@ from . import labels as L
 from .anatomy import HU_AIR, HeadParams, inside_cavity_margin, rasterise_head, sample_head
 from .raster import Grid, rasterise_tube
 
-__all__ = ["HeadFit", "fit_head", "with_arteries", "deformed_head"]
+__all__ = ["HeadFit", "fit_head", "with_arteries", "deformed_head", "load_headsq", "HEADSQ_HU_OFFSET", "HEADSQ_HEADER_FIX"]
 
 #: Voxel size (mm) the fit works at: the CT is block-averaged to about this.
 FIT_SPACING_MM = 4.0
@@ -73,6 +74,11 @@ NECK_BLEND_MM = (-70.0, -100.0)
 DEFORM_MESH_CELLS = 3
 DEFORM_AMPLITUDE_MM = 4.0
 DEFORM_SCALE_SD = 0.05
+#: The VTK headsq file stores raw values: HU = value - 1024.
+HEADSQ_HU_OFFSET = -1024.0
+#: The headsq header puts the head upside down (superior along RAS -z, the face
+#: still anterior): a 180 deg turn about the anterior axis makes it a supine head CT.
+HEADSQ_HEADER_FIX = np.diag([-1.0, 1.0, -1.0, 1.0])
 
 
 @dataclass(frozen=True)
@@ -337,6 +343,12 @@ def deformed_head(
     ct = sitk.Resample(image, image, warp, sitk.sitkLinear, HU_AIR)
     lab = sitk.Resample(label_image, label_image, warp, sitk.sitkNearestNeighbor, 0)
     record = {"seed": int(seed), "amplitude_mm": float(amplitude_mm), "scale_sd": float(scale_sd)}
-    return (volume_from_sitk(ct, {**cta.metadata, "deformed": record}),
-            volume_from_sitk(lab, {**labels.metadata, "deformed": record}).like(
-                sitk.GetArrayFromImage(lab).astype(labels.array.dtype)))
+    return (cta.like(sitk.GetArrayFromImage(ct).astype(np.float32), **{**cta.metadata, "deformed": record}),
+            labels.like(sitk.GetArrayFromImage(lab).astype(labels.array.dtype), **{**labels.metadata, "deformed": record}))
+
+
+def load_headsq(path: str | Path) -> Volume:
+    """The real head CT ``headsq`` (``quarter_sidecar.mhd``) in HU as a supine head CT: its raw
+    values shifted by ``HEADSQ_HU_OFFSET`` and its upside-down header turned by ``HEADSQ_HEADER_FIX``."""
+    raw = load_cta(path, hu_offset=HEADSQ_HU_OFFSET)
+    return Volume(raw.array, HEADSQ_HEADER_FIX @ raw.ijk_to_ras, dict(raw.metadata, header_fix="180 deg about A"))

@@ -61,11 +61,9 @@ def _population(args: argparse.Namespace) -> int:
 def _variants(args: argparse.Namespace) -> int:
     from ..cta import cranium_mask_from_cta, load_cta, save_volume
     from ..phantom import labels as L
-    from ..phantom.real_head import deformed_head, with_arteries
+    from ..phantom.real_head import deformed_head, load_headsq, with_arteries
 
     if args.headsq:
-        from ..bench.cases import load_headsq
-
         cta, name = load_headsq(args.headsq), "headsq"
     else:
         cta, name = load_cta(args.cta), args.cta.name.split(".")[0]
