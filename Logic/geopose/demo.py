@@ -10,9 +10,7 @@ import argparse
 from pathlib import Path
 
 from . import contract as C
-from .cta import load_cta, save_volume
 from .phantom.cli import write_phantom
-from .phantom.labels import vessel_mask
 from .register.cli import print_summary, register_files
 from .options import BACKENDS, RegistrationOptions
 
@@ -35,11 +33,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"[1/2] generating phantom subject {args.seed} in {case}")
     timings = write_phantom(args.seed, case)
     print("      " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
-    labels = load_cta(case / "labels.nii.gz", check_hu=False)
-    save_volume(labels.like(vessel_mask(labels.array).astype("uint8")), case / "vessels.nii.gz")
-    print("[2/2] registering the CTA to the PA + lateral DSA pair (vessel segmentation: the phantom's arteries)")
+    print("[2/2] registering the CTA to the PA + lateral DSA pair as a user would: the CTA and the two runs only "
+          "(masks computed from them; the phantom's labels and truth serve only to score the result)")
     record = register_files(
-        case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", out, segmentation=case / "vessels.nii.gz",
+        case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", out,
         options=RegistrationOptions(iterations=args.iterations, device=args.device, backend=args.backend),
     )
     print_summary(record, out)

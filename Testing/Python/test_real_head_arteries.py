@@ -244,11 +244,15 @@ def _real(name: str, mpcd: float | None) -> dict:
     view = {"rotation_error_deg": 1.0, "source_distance_mm": 5.0} | ({} if mpcd is None else {"mpcd_mm": mpcd})
     rows = {row.format(n=25): {"pa": dict(view), "lat": dict(view)}
             for row in ("DICOM angles", LEARNED_ROW, NATIVE_TTO_ROW)}
-    return {"case": name, "notes": [name], "rows": rows}
+    return {"case": name, "notes": [name], "rows": rows, "quality": {"pa": "ok", "lat": "doubtful"}}
 
 
 def test_report_gives_the_cases_with_arteries_columns_and_an_mpcd_table():
-    text = "\n".join(real_heads_markdown([_real("headsq-0", None), _real("headsq+arteries-0", 2.5)], 25))
+    plain = _real("headsq-0", None)
+    plain["rows"][LEARNED_ROW.format(n=25)]["lat"]["rotation_error_deg"] = 1.5  # 0.5 deg further than the DICOM angles
+    text = "\n".join(real_heads_markdown([plain, _real("headsq+arteries-0", 2.5)], 25))
+    assert "| with arteries: final rotation error <= 1.5 deg (worst view) | 1.0 | yes |" in text
+    assert "| 1 of 2: headsq-0 LAT | NO |" in text and "headsq-0 ok / doubtful" in text
     pose_table, mpcd_table = text.split("Carotid mPCD (mm)")
     assert "| row | headsq-0 | headsq+arteries-0 |" in pose_table
     assert "| row | headsq+arteries-0 |" in mpcd_table and "| DICOM angles | 2.5; 2.5 |" in mpcd_table

@@ -11,6 +11,13 @@ Rows:
   TTO``: the published pipeline (each view on its own, the paper's objective and schedule);
 * ``truth + n TTO``: the default TTO started at the true pose: how far the objective's
   optimum lies from the truth (drift);
+* ``upper bound (truth masks): ...``: the default registration handed the case's true cranium and
+  vessel masks, which a user does not have: how much better the registration would be with a
+  perfect CTA segmentation (the gap to the default rows is a reported number).
+
+Every other row runs the user's path: the CTA and the two runs only, the masks computed by
+:func:`register_case` as for ``geopose register`` without ``--segmentation`` or ``--cranium-mask``.
+The case's true masks serve only for scoring (clDice, silhouette Dice) and the upper-bound rows.
 * ``DICOM angles + long TTO`` (``long_iterations``; 0 skips it).
 
 Poses are camera-to-centred-native ``(4, 4)`` (mm); metrics as ``geopose.metrics``.
@@ -32,10 +39,11 @@ from ..register.evaluate import carotid_mpcd, evaluate_pose
 from ..register.pipeline import DICOM_START, register_case, torch_renderer_for, tto_views
 from ..register.results import CaseRegistration
 from ..register.tto import TTOSchedule, test_time_optimise
+from ..render.renderer import Renderer
 from .cases import BenchCase
 
 __all__ = ["BenchSettings", "row_names", "evaluate_case", "LEARNED_ROW", "NATIVE_TTO_ROW", "DRIFT_ROW", "INSTANT_ROW",
-           "SEARCH_ROW"]
+           "SEARCH_ROW", "UPPER_BOUND_ROW", "UPPER_BOUND_SEARCH_ROW"]
 
 #: The default registration's rows (the targets refer to them).
 INSTANT_ROW = "biplane: greedy Refine"
@@ -44,6 +52,9 @@ SEARCH_ROW = "biplane: greedy Refine + search"
 LEARNED_ROW = "biplane: greedy Refine + {n} TTO"
 NATIVE_TTO_ROW = "DICOM angles + {n} TTO"
 DRIFT_ROW = "truth + {n} TTO (drift)"
+#: The default registration given the case's true masks (not the user's path: an upper bound).
+UPPER_BOUND_ROW = "upper bound (truth masks): greedy Refine + {n} TTO"
+UPPER_BOUND_SEARCH_ROW = "upper bound (truth masks): greedy Refine + search"
 
 
 @dataclass(frozen=True)
@@ -63,22 +74,24 @@ def row_names(settings: BenchSettings, long: bool = True) -> list[str]:
         "independent: Init", "independent: Init + Refine x1", "independent: greedy Refine",
         f"independent: greedy Refine + {n} TTO",
         DRIFT_ROW.format(n=n),
+        *([UPPER_BOUND_SEARCH_ROW] if settings.options.search else []), UPPER_BOUND_ROW.format(n=n),
     ]
     if long and settings.long_iterations > 0:
         rows.append(f"DICOM angles + {settings.long_iterations} TTO")
     return rows
 
 
-def _metrics(reg: CaseRegistration, case: BenchCase, key: str, pose: np.ndarray) -> dict:
-    """NCC and silhouette Dice in the TTO geometry, plus the truth metrics of ``evaluate_pose``
-    (clDice only where the case has arteries)."""
+def _metrics(reg: CaseRegistration, scorer: Renderer, case: BenchCase, key: str, pose: np.ndarray) -> dict:
+    """NCC (against the run's TTO target) and the true cranium's silhouette Dice in the TTO geometry,
+    plus the truth metrics of ``evaluate_pose`` (clDice of the TRUE vessels, only where the case has
+    arteries); ``scorer`` renders the CTA with the case's true masks."""
     view = reg.views[key].prepared
-    image = reg.renderer.render(pose, view.tto_detector, ("total", "cranium"))
+    image = scorer.render(pose, view.tto_detector, ("total", "cranium"))
     out = {"ncc": ncc(view.tto_image, image[0]), "silhouette_dice": silhouette_dice(image[1], view.tto_mask)}
     run = case.runs[key]
     return out | evaluate_pose(
         pose, case.true_poses[key], run.detector, run.angles.sod_mm, case.carotid_points_mm,
-        renderer=reg.renderer if case.carotid_points_mm is not None else None, mask_detector=view.tto_detector,
+        renderer=scorer if case.carotid_points_mm is not None else None, mask_detector=view.tto_detector,
     )
 
 
@@ -101,9 +114,11 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
     """All rows for ``case``: ``{"rows": {row: {view: metrics}}, "views": ..., "runtimes_s": ..., "curves": ...}``."""
     options = settings.options.replace(independent_views=False)
     n = options.iterations
-    masks = dict(cranium_mask=case.cranium, segmentation=case.vessels)
-    joint = register_case(case.cta, case.runs, models=models, options=options, **masks)
-    paper = register_case(case.cta, case.runs, models=models, options=options.replace(independent_views=True), **masks)
+    joint = register_case(case.cta, case.runs, models=models, options=options)
+    paper = register_case(case.cta, case.runs, models=models, options=options.replace(independent_views=True))
+    upper = register_case(case.cta, case.runs, models=models, options=options, cranium_mask=case.cranium,
+                          segmentation=case.vessels)
+    scorer = upper.renderer
     stages = ("prepare", "calibration", "init", "refine", "search", "tto", "total")
     times = {f"{stage} (biplane)": joint.runtimes_s[stage] for stage in stages if stage in joint.runtimes_s}
     times |= {f"{stage} (independent)": paper.runtimes_s[stage] for stage in ("refine", "tto", "total")}
@@ -118,11 +133,13 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
         "independent: Init + Refine x1": {k: (paper.views[k].refine.proposals or [paper.views[k].refine])[0].pose
                                           for k in VIEW_KEYS},
         "independent: greedy Refine": {k: paper.views[k].refine.pose for k in VIEW_KEYS},
+        **({UPPER_BOUND_SEARCH_ROW: {k: upper.views[k].search_pose for k in VIEW_KEYS}} if upper.registration.search else {}),
     }
     curves: dict[str, dict] = {}
     if joint.tto is not None:
         poses[LEARNED_ROW.format(n=n)] = {k: joint.views[k].final_pose for k in VIEW_KEYS}
         poses[f"independent: greedy Refine + {n} TTO"] = {k: paper.views[k].final_pose for k in VIEW_KEYS}
+        poses[UPPER_BOUND_ROW.format(n=n)] = {k: upper.views[k].final_pose for k in VIEW_KEYS}
         curves[LEARNED_ROW.format(n=n)] = _curves(case, joint.tto.trace)
         # The registration's own TTO run from the DICOM angles is the native row.
         native = joint.registration.tto_runs[DICOM_START]
@@ -141,7 +158,7 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
             times[f"{name}"] = time.perf_counter() - t0
             poses[name] = dict(result.poses)
             curves[name] = _curves(case, result.trace)
-    rows = {row: {k: _metrics(joint, case, k, p[k]) for k in VIEW_KEYS} for row, p in poses.items()}
+    rows = {row: {k: _metrics(joint, scorer, case, k, p[k]) for k in VIEW_KEYS} for row, p in poses.items()}
     view_info = {k: {"true_view": case.runs[k].view_label, "init_view": paper.views[k].init.view,
                      "greedy_accepted": joint.views[k].refine.accepted} for k in VIEW_KEYS}
     registration = joint.registration
@@ -151,4 +168,6 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
                       "refine": registration.refine_start,
                       "tto_objective": registration.tto_objective},
             "checks": registration.checks,
-            "quality": {k: joint.views[k].quality.flag for k in VIEW_KEYS}}
+            "masks": joint.labels_source,
+            "quality": {k: joint.views[k].quality.flag for k in VIEW_KEYS},
+            "quality_reasons": {k: list(joint.views[k].quality.reasons) for k in VIEW_KEYS}}
