@@ -22,7 +22,12 @@ optimises ``X`` against both views from every distinct candidate start (the DICO
 pose, the fused Init, each view's Init alone, Refine + search) through its coarse steps,
 then from the DICOM angles and the best other start (by the objective, ``objective.py``) to
 the end; the lower final objective wins (the DICOM angles' within a tie), so the result is
-never worse, by the objective, than the acquisition's own geometry.
+never worse, by the objective, than the acquisition's own geometry. A CTA without vessels (no
+contrast, or a segmentation that found none) leaves the head's silhouette as the only evidence:
+the result then starts from the DICOM angles alone and its move from there is bounded
+(``bound.py``); the quality flag says so. ``score`` also weighs the final pose against its
+left-right mirror image (``evidence.py``): a CTA whose header swaps the sides fits the silhouette
+but not the vessels.
 ``independent_views=True`` runs the published pipeline: each view on its own, the paper's
 objective and schedule.
 
@@ -52,8 +57,10 @@ from ..options import RegistrationOptions
 from ..render.renderer import Renderer, TorchRenderer, make_renderer
 from ..volume import Volume
 from .biplane import axis_disagreement_mm, combined_starts, fuse_patient_poses, nominal_poses, patient_pose, view_poses
+from .bound import bound_move
 from .calibration import calibrate, calibrated_init
 from .case import TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, PreparedCase, prepare_case, silhouette_dice
+from .evidence import midline_mirror, view_evidence
 from .objective import PAPER_OBJECTIVE, objective_value
 from .progress import CancelCheck, Monitor, ProgressCallback
 from .quality import VIEW_DISAGREEMENT_MM, Quality, assess
@@ -63,7 +70,8 @@ from .search import similarity_search
 from .tto import PAPER_SCHEDULE, TTOResult, TTOSchedule, TTOView, test_time_optimise, test_time_optimise_starts
 
 __all__ = [
-    "DICOM_START", "SEARCHED_START", "Engine", "NO_TORCH_TTO_NOTE", "OBJECTIVE_TIE", "chosen_result", "resolve_engine",
+    "DICOM_START", "SEARCHED_START", "Engine", "NO_TORCH_TTO_NOTE", "NO_VESSELS_NOTE", "OBJECTIVE_TIE", "chosen_result",
+    "resolve_engine",
     "register_case", "score_view", "torch_available", "torch_renderer_for", "tto_views",
 ]
 
@@ -75,6 +83,10 @@ SEARCHED_START = "Refine + search"
 #: Said (progress, record, Slicer table) when the test-time optimisation cannot run.
 NO_TORCH_TTO_NOTE = ("PyTorch is not installed: calibration, Init and Refine ran on onnxruntime; the test-time "
                      "optimisation needs PyTorch and was skipped")
+
+#: Said (record, flag) when the CTA's vessel mask is empty: the silhouette is the only evidence.
+NO_VESSELS_NOTE = ("the CTA shows no contrast-filled vessels (none found, or none given): the pose rests on the head's "
+                   "silhouette alone, so it started from the DICOM angles and its move from there was bounded")
 
 #: Objective difference (summed over both views) within which two TTO results tie; on a tie the
 #: DICOM angles' result is kept. Finalists' objectives on the 40 benchmark phantoms differ by at
@@ -193,6 +205,12 @@ def _consistency_doubts(key: str, init: InitEstimate, label: int, registration: 
     if init.network_view != label:
         doubts.append(f"the network reads this view as {C.VIEW_NAMES[init.network_view]} but its acquisition angle says "
                       f"{C.VIEW_NAMES[label]}: check the runs' angles (docs/conventions.md section 7)")
+    if not registration.vessel_evidence:
+        bound = registration.bound
+        doubts.append("no vessel evidence: the CTA shows no contrast-filled vessels, so the pose rests on the head's "
+                      "silhouette alone" + ("" if bound is None or not bound.bounded else
+                                            f"; its move from the DICOM angles was bounded ({bound.rotation_deg:.1f} deg / "
+                                            f"{bound.shift_mm:.0f} mm asked, {100 * bound.fraction:.0f} % kept)"))
     apart = registration.checks.get("view_disagreement_mm", 0.0)
     if apart > VIEW_DISAGREEMENT_MM:
         doubts.append(f"the two views place the patient {apart:.0f} mm apart along the axis both see: did the patient move "
@@ -315,11 +333,16 @@ def register_case(
     #    alike.
     finals = dict(learned)
     tto_result: TTOResult | None = None
+    vessels = case.volume.mask("vessels")
+    registration.vessel_evidence = vessels is not None and bool(vessels.any())
+    if joint and not registration.vessel_evidence:
+        notes.append(NO_VESSELS_NOTE)
     with _timed(times, "tto", engine):
         if joint:
-            candidates = {DICOM_START: np.eye(4), "Init": X_init,
-                          **{f"Init {key.upper()}": implied[key] for key in VIEW_KEYS},
-                          SEARCHED_START if registration.search else "Refine": X_learned}
+            candidates = {DICOM_START: np.eye(4)}
+            if registration.vessel_evidence:
+                candidates |= {"Init": X_init, **{f"Init {key.upper()}": implied[key] for key in VIEW_KEYS},
+                               SEARCHED_START if registration.search else "Refine": X_learned}
             registration.starts = {name: _pair_objective(renderer, view_poses(X, rig), case) for name, X in candidates.items()}
             registration.chosen_start = min(registration.starts, key=registration.starts.get)
             registration.patient_pose = candidates[registration.chosen_start]
@@ -349,16 +372,22 @@ def register_case(
             tto_result = test_time_optimise(tto_renderer, tto_views(case.views, finals), schedule, objective=PAPER_OBJECTIVE,
                                             biplanar=options.biplanar, monitor=monitor)
             finals = dict(tto_result.poses)
+        if joint and not registration.vessel_evidence:
+            registration.bound = bound_move(registration.patient_pose)
+            registration.patient_pose = registration.bound.patient_pose
+            finals = view_poses(registration.patient_pose, rig)
 
     # 6. Scores and quality flags.
     outcomes: dict[str, ViewOutcome] = {}
     with _timed(times, "score", engine):
+        mirror = midline_mirror(case.volume)
         for key in VIEW_KEYS:
             score, dice = score_view(renderer, finals[key], case.views[key])
-            quality: Quality = assess(score, dice, *stage_agreement(learned[key], finals[key]),
+            evidence = view_evidence(renderer, finals[key], case.views[key], mirror)
+            quality: Quality = assess(score, dice, *stage_agreement(learned[key], finals[key]), evidence=evidence,
                                       doubts=_consistency_doubts(key, inits[key], labels[key], registration))
             outcomes[key] = ViewOutcome(key, case.views[key], inits[key], init_poses[key], refined[key], finals[key], score,
-                                        dice, quality, learned[key] if registration.search else None)
+                                        dice, quality, learned[key] if registration.search else None, evidence)
     times["total"] = time.perf_counter() - t_start
     monitor.step("done", 1.0, "registration finished" + (" (" + notes[0] + ")" if notes else ""))
     return CaseRegistration(cta, case.labels_source, calibration, outcomes, tto_result, times, options,

@@ -19,6 +19,9 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 9: each view's ``evidence`` (the objective's terms at the final pose and at its left-right mirror image,
+#: ``register/evidence.py``), ``registration.vessel_evidence`` and ``registration.bound`` (without vessel
+#: evidence, the move from the DICOM angles asked for and kept, ``register/bound.py``; null otherwise).
 #: 8: ``registration.similarity_search`` (the search after biplane greedy Refine: start and end mNCC and
 #: patient pose, the moves kept, the poses scored; null when it did not run) and the views' ``search``
 #: stage pose.
@@ -36,7 +39,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -135,6 +138,7 @@ def _view_entry(case: CaseRegistration, v: ViewOutcome, run: DSARun) -> dict:
         "final_mncc_doc": "mNCC of the final DRR against the TTO target (acquisition SDD)",
         "silhouette_dice": v.silhouette_dice,
         "quality": v.quality.as_dict(),
+        "evidence": None if v.evidence is None else v.evidence.as_dict(),
     }
     if case.tto is not None:
         entry["tto"] = {"best_iteration": case.tto.best_iteration[v.key], "best_mncc": case.tto.best_mncc[v.key]}
@@ -205,6 +209,8 @@ def build_record(
             "patient_pose_centred": None if case.registration.patient_pose is None else _m(case.registration.patient_pose),
             "nominal_pose_centred": {k: _m(A) for k, A in case.registration.rig.items()},
             "checks": case.registration.checks,
+            "vessel_evidence": case.registration.vessel_evidence,
+            "bound": None if case.registration.bound is None else case.registration.bound.as_dict(),
             "refine_start": case.registration.refine_start,
             "refine_start_doc": "biplane-rigid: greedy Refine ran from every combination of a rotation and an isocentre "
             "of the fused Init and each view's Init; the end with the highest mean mNCC (refine_start_mncc) was kept",

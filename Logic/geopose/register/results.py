@@ -19,6 +19,8 @@ from .quality import Quality
 
 if TYPE_CHECKING:
     from ..render.renderer import Renderer
+    from .bound import BoundedMove
+    from .evidence import ViewEvidence
     from .opacified import VesselSelection
     from .tto import TTOResult
 
@@ -92,7 +94,8 @@ class SearchTrace:
 class ViewOutcome:
     """Everything one view went through. ``init_pose`` is the pose after the Init stage: the
     view's own calibrated Init, or, registering one patient pose, the fused one; ``search_pose``
-    the pose after the similarity search (None: it did not run)."""
+    the pose after the similarity search (None: it did not run); ``evidence`` the objective's terms at
+    the final pose and its mirror image (``evidence.py``)."""
 
     key: str
     prepared: PreparedDSA
@@ -104,6 +107,7 @@ class ViewOutcome:
     silhouette_dice: float
     quality: Quality
     search_pose: np.ndarray | None = None
+    evidence: "ViewEvidence | None" = None
 
     @property
     def stage_poses(self) -> dict[str, np.ndarray]:
@@ -137,6 +141,8 @@ class Registration:
     refine_start: str = ""
     refine_starts: dict[str, float] = field(default_factory=dict)
     search: SearchTrace | None = None
+    vessel_evidence: bool = True
+    bound: "BoundedMove | None" = None
 
 
 @dataclass
