@@ -142,3 +142,15 @@ def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     assert (out / "cases" / "phantom-777001.json").is_file()  # resumable
     # the default rows ran the user's path: masks computed from the CTA, not the phantom's labels
     assert "given" not in case["masks"]["vessels"] and "given" not in case["masks"]["cranium"]
+
+
+def test_dense_opacification_cases_get_their_own_section_and_targets():
+    from geopose.bench.report import dense_markdown
+
+    a = _case("phantom-5000-all", {FINAL: {"pa": _view(0.8, 1.0, rot=1.0), "lat": _view(0.6, 2.0, rot=2.0)}})
+    b = _case("phantom-5001-all", {FINAL: {"pa": _view(0.8, 4.0, rot=3.0), "lat": _view(0.6, 3.0, rot=4.0)}},
+              quality=("doubtful", "failed"))
+    text = "\n".join(dense_markdown([a, b], 25))
+    assert "| row | phantom-5000-all | phantom-5001-all |" in text and f"| {FINAL} | 1.0 / 1.0; 2.0 / 2.0 | 4.0 / 3.0; 3.0 / 4.0 |" in text
+    assert "phantom-5001-all doubtful / failed" in text
+    assert f"| {FINAL}: mean mPCD <= 2 mm | 2.50 | NO |" in text and f"| {FINAL}: mean rotation error <= 2 deg | 2.50 | NO |" in text

@@ -74,16 +74,17 @@ def seed_range(text: str) -> list[int]:
         raise InputError(f"seed range {text!r}: write FIRST-LAST or one seed, e.g. 5000-5039") from None
 
 
-def phantom_case(seed: int, folder: Path, spacing_mm: float = 1.0) -> BenchCase:
-    """Phantom ``seed`` written by ``geopose phantom`` into ``folder`` and read back;
-    the phantom's own cranium and artery labels serve as the CTA masks."""
-    write_phantom(seed, folder, spacing_mm=spacing_mm, max_matrix_px=BENCH_MATRIX_PX)
+def phantom_case(seed: int, folder: Path, spacing_mm: float = 1.0, injection: str | None = None) -> BenchCase:
+    """Phantom ``seed`` written by ``geopose phantom`` into ``folder`` and read back, its runs with
+    ``injection`` (default: the subject's own draw; the case is then named after it too); the
+    phantom's own cranium and artery labels are the true masks (scoring and upper bounds)."""
+    write_phantom(seed, folder, spacing_mm=spacing_mm, injection=injection, max_matrix_px=BENCH_MATRIX_PX)
     cta = load_cta(folder / "cta.nii.gz")
     labels = load_cta(folder / "labels.nii.gz", check_hu=False)
     truth = load_truth(folder / "cta.nii.gz")
     runs = {key: read_dsa(folder / f"dsa_{key}.dcm") for key in ("pa", "lat")}
     return BenchCase(
-        f"phantom-{seed}", cta, labels.like(L.cranium_mask(labels.array).astype(np.uint8)),
+        f"phantom-{seed}" + (f"-{injection}" if injection else ""), cta, labels.like(L.cranium_mask(labels.array).astype(np.uint8)),
         labels.like(L.vessel_mask(labels.array).astype(np.uint8)), runs, truth.poses, truth.carotid_points_mm,
     )
 

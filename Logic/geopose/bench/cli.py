@@ -44,6 +44,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--real-seeds", type=int, default=3, help="simulated run pairs per real head")
     p.add_argument("--real-arteries", action="store_true",
                    help="also run each real head made a CTA with a phantom's arteries (cases NAME+arteries-SEED)")
+    p.add_argument("--dense", nargs="*", default=[], metavar="INJECTION",
+                   help="also run the first --dense-subjects held-out phantoms with each of these injections (densely "
+                        "opacified runs, e.g. all territories), reported in their own section")
+    p.add_argument("--dense-subjects", type=int, default=5, help="held-out phantoms per --dense injection")
     p.add_argument("--models", help="model folder with its manifest.json (default: the shipped models)")
     p.add_argument("--allow-unverified-models", action="store_true",
                    help="use a --models folder without manifest.json (its files are not checksum-verified)")
@@ -91,6 +95,13 @@ def run(args: argparse.Namespace) -> int:
             mpcd = [result["rows"][row][v].get("mpcd_mm") for v in ("pa", "lat")]
             print(f"[{i + 1}/{len(seeds)}] {tag}: {row} mPCD PA {mpcd[0]:.2f} / LAT {mpcd[1]:.2f} mm; "
                   f"elapsed {elapsed / 60:.1f} min", flush=True)
+        dense = []
+        for injection in args.dense:
+            for seed in seeds[: args.dense_subjects]:
+                tag = f"phantom-{seed}-{injection}"
+                dense.append(_load_or_run(out / "cases" / f"{tag}.json", lambda: evaluate_case(
+                    phantom_case(seed, Path(tmp) / tag, args.spacing_mm, injection), models, settings, long=False)))
+                print(f"dense {tag} done; elapsed {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
         real = []
         variants = (False, True) if args.real_arteries else (False,)
         for name, source, make in (("headsq", args.headsq, headsq_case), ("ge-head", args.ge_head, ge_head_case)):
@@ -110,10 +121,12 @@ def run(args: argparse.Namespace) -> int:
         f"Reproduce: `geopose bench --subjects {args.subjects} --long-subjects {n_long} --spacing-mm {args.spacing_mm:g} "
         f"--out {out}{' --headsq ' + args.headsq if args.headsq else ''}{' --ge-head ' + args.ge_head if args.ge_head else ''}"
         f"{' --real-seeds ' + str(args.real_seeds) if real else ''}"
-        f"{' --real-arteries' if args.real_arteries else ''}`"
+        f"{' --real-arteries' if args.real_arteries else ''}"
+        f"{' --dense ' + ' '.join(args.dense) + f' --dense-subjects {args.dense_subjects}' if args.dense else ''}`"
     )
-    (out / "bench.md").write_text(markdown(summary, header, real, args.iterations))
-    (out / "bench.json").write_text(json.dumps({"summary": summary, "cases": cases, "real_heads": real}, indent=1))
+    (out / "bench.md").write_text(markdown(summary, header, real, args.iterations, dense))
+    (out / "bench.json").write_text(json.dumps({"summary": summary, "cases": cases, "real_heads": real, "dense": dense},
+                                               indent=1))
     n = args.iterations
     curve_rows = [r for r in row_names(settings) if r in (LEARNED_ROW.format(n=n), NATIVE_TTO_ROW.format(n=n), DRIFT_ROW.format(n=n))
                   or r.startswith("DICOM angles + ") and r != NATIVE_TTO_ROW.format(n=n)]

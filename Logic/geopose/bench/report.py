@@ -157,9 +157,11 @@ def _cell(s: dict, digits: int) -> str:
     return "-" if s["mean"] is None else f"{s['mean']:.{digits}f} ({s['sd']:.{digits}f})"
 
 
-def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int = C.TTO_ITERATIONS) -> str:
+def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int = C.TTO_ITERATIONS,
+             dense: list[dict] | None = None) -> str:
     """The benchmark as Markdown: accuracy table, pose-error parts, view accuracy, targets,
-    runtimes, and the real-anatomy rows (``real``: cases of real head CTs with simulated runs)."""
+    runtimes, the real-anatomy rows (``real``: cases of real head CTs with simulated runs) and the
+    densely opacified phantoms (``dense``)."""
     cols = [f"{label} {v.upper()}" for label, _, _ in COLUMNS for v in (*VIEWS, "avg")]
     lines = [header, "", "## Accuracy (mean (sd) over subjects; avg = PA and LAT averaged within each subject)", ""]
     lines += ["| row | n | " + " | ".join(cols) + " | rot. err. (deg) | transl. err. (mm) | success |"]
@@ -203,6 +205,8 @@ def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int 
         lines.append(f"| {stage} | {_cell(s, 2)} | {'' if paper is None else f'{paper / 1000:.3f}'} |")
     if real:
         lines += real_heads_markdown(real, n)
+    if dense:
+        lines += dense_markdown(dense, n)
     return "\n".join(lines) + "\n"
 
 
@@ -220,6 +224,33 @@ REAL_HEAD_ARTERIES_ROTATION_DEG = 1.5
 #: Plain real heads: the final pose may be at most this much further from the truth than the DICOM
 #: angles' (rotation deg, source position mm) before it counts as worse.
 NO_WORSE_TOLERANCE = (0.25, 2.0)
+
+
+#: Densely opacified phantoms: the final mPCD (mm) and rotation error (deg) at most these, mean over the cases.
+DENSE_MPCD_MM = 2.0
+DENSE_ROTATION_DEG = 2.0
+
+
+def dense_markdown(dense: list[dict], n: int) -> list[str]:
+    """Per densely opacified phantom, mPCD (mm) / rotation error (deg) of each view at each row, the
+    quality flags, and the targets (means over cases and views)."""
+    rows = list(dict.fromkeys(r for c in dense for r in c["rows"]))
+    lines = ["", "## Densely opacified runs (held-out phantoms; every artery, a nidus or a late venous phase)", "",
+             "Carotid mPCD (mm) / rotation error (deg), PA; LAT.", ""]
+    lines += _case_table(dense, rows, lambda r: "; ".join(
+        f"{r[v]['mpcd_mm']:.1f} / {r[v]['rotation_error_deg']:.1f}" for v in VIEWS))
+    lines += ["", "Quality flags, PA / LAT: " + "; ".join(
+        f"{c['case']} {c['quality']['pa']} / {c['quality']['lat']}" for c in dense if "quality" in c) + ".", ""]
+    final = LEARNED_ROW.format(n=n)
+    views = [c["rows"][final][v] for c in dense if final in c["rows"] for v in VIEWS]
+    if views:
+        mpcd_mm = float(np.mean([v["mpcd_mm"] for v in views]))
+        rotation = float(np.mean([v["rotation_error_deg"] for v in views]))
+        lines += ["| target (dense opacification) | measured | met |", "|---|---:|:---:|",
+                  f"| {final}: mean mPCD <= {DENSE_MPCD_MM:g} mm | {mpcd_mm:.2f} | {'yes' if mpcd_mm <= DENSE_MPCD_MM else 'NO'} |",
+                  f"| {final}: mean rotation error <= {DENSE_ROTATION_DEG:g} deg | {rotation:.2f} | "
+                  f"{'yes' if rotation <= DENSE_ROTATION_DEG else 'NO'} |"]
+    return lines
 
 
 def _case_table(cases: list[dict], rows: list[str], cell: Callable[[dict], str]) -> list[str]:

@@ -25,9 +25,9 @@ the end; the lower final objective wins (the DICOM angles' within a tie), so the
 never worse, by the objective, than the acquisition's own geometry. A CTA without vessels (no
 contrast, or a segmentation that found none) leaves the head's silhouette as the only evidence:
 the result then starts from the DICOM angles alone and its move from there is bounded
-(``bound.py``); the quality flag says so. ``score`` also weighs the final pose against its
-left-right mirror image (``evidence.py``): a CTA whose header swaps the sides fits the silhouette
-but not the vessels.
+(``bound.py``); the quality flag says so. With vessels and the TTO, the result is then weighed
+against the CTA mirrored left-right (``mirror.py``): a header that swaps the patient's sides fits
+the silhouette but not the vessels.
 ``independent_views=True`` runs the published pipeline: each view on its own, the paper's
 objective and schedule.
 
@@ -60,14 +60,15 @@ from .biplane import axis_disagreement_mm, combined_starts, fuse_patient_poses, 
 from .bound import bound_move
 from .calibration import calibrate, calibrated_init
 from .case import TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, PreparedCase, prepare_case, silhouette_dice
-from .evidence import midline_mirror, view_evidence
+from .evidence import view_evidence
+from .mirror import mirror_test
 from .objective import PAPER_OBJECTIVE, objective_value
 from .progress import CancelCheck, Monitor, ProgressCallback
 from .quality import VIEW_DISAGREEMENT_MM, Quality, assess
 from .refine import greedy_refine, refine_from_starts
 from .results import CaseRegistration, InitEstimate, Registration, ViewOutcome
 from .search import similarity_search
-from .tto import PAPER_SCHEDULE, TTOResult, TTOSchedule, TTOView, test_time_optimise, test_time_optimise_starts
+from .tto import PAPER_SCHEDULE, TTOResult, TTOSchedule, test_time_optimise, test_time_optimise_starts, tto_views
 
 __all__ = [
     "DICOM_START", "SEARCHED_START", "Engine", "NO_TORCH_TTO_NOTE", "NO_VESSELS_NOTE", "OBJECTIVE_TIE", "chosen_result",
@@ -176,12 +177,6 @@ def _timed(times: dict[str, float], name: str, engine: Engine) -> Iterator[None]
     yield
     engine.synchronize()
     times[name] = time.perf_counter() - t0
-
-
-def tto_views(views: Mapping[str, PreparedDSA], poses: Mapping[str, np.ndarray]) -> list[TTOView]:
-    """Both preprocessed views set up for :func:`test_time_optimise`, starting from ``poses``."""
-    return [TTOView(k, views[k].tto_image, views[k].tto_mask, views[k].tto_vessels, views[k].tto_detector, poses[k])
-            for k in VIEW_KEYS]
 
 
 def torch_renderer_for(renderer: Renderer) -> TorchRenderer | None:
@@ -376,15 +371,19 @@ def register_case(
             registration.bound = bound_move(registration.patient_pose)
             registration.patient_pose = registration.bound.patient_pose
             finals = view_poses(registration.patient_pose, rig)
+    if joint and registration.vessel_evidence and tto_result is not None:
+        with _timed(times, "mirror", engine):
+            monitor.step("mirror", 0.0, "weighing the result against the CTA mirrored left-right")
+            registration.mirror = mirror_test(renderer, case.views, registration.patient_pose, rig, device)
 
     # 6. Scores and quality flags.
     outcomes: dict[str, ViewOutcome] = {}
     with _timed(times, "score", engine):
-        mirror = midline_mirror(case.volume)
         for key in VIEW_KEYS:
             score, dice = score_view(renderer, finals[key], case.views[key])
-            evidence = view_evidence(renderer, finals[key], case.views[key], mirror)
+            evidence = view_evidence(renderer, finals[key], case.views[key])
             quality: Quality = assess(score, dice, *stage_agreement(learned[key], finals[key]), evidence=evidence,
+                                      mirror=registration.mirror,
                                       doubts=_consistency_doubts(key, inits[key], labels[key], registration))
             outcomes[key] = ViewOutcome(key, case.views[key], inits[key], init_poses[key], refined[key], finals[key], score,
                                         dice, quality, learned[key] if registration.search else None, evidence)

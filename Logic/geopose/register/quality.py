@@ -11,9 +11,8 @@ Rule (thresholds named below; set on phantom runs, provisional for real data):
   case failed (the pipeline passes its reasons: the network's lateral side against the
   acquisition angle's, two views placing the patient more than ``VIEW_DISAGREEMENT_MM``
   apart along the axis both see);
-* ``failed`` also when the runs' vessels fit the CTA mirrored left-right better than as it is
-  (``evidence.py``: the vessel NCC of the mirror image exceeds the pose's by ``MIRROR_MARGIN``),
-  or when the vessel NCC at the final pose is below ``VESSEL_NCC_FAILED`` (the CTA's vessels are
+* ``failed`` also when the CTA mirrored left-right explains the runs better than the result
+  (``mirror.py``), or when the vessel NCC at the final pose is below ``VESSEL_NCC_FAILED`` (the CTA's vessels are
   not where the runs show them: a wrong pose, or runs of another patient);
   ``doubtful`` when it is below ``VESSEL_NCC_OK``;
 * ``ok`` otherwise.
@@ -26,6 +25,7 @@ from typing import TYPE_CHECKING, Final
 
 if TYPE_CHECKING:
     from .evidence import ViewEvidence
+    from .mirror import MirrorTest
 
 MNCC_FAILED: Final = 0.15
 MNCC_OK: Final = 0.35
@@ -34,7 +34,6 @@ DICE_OK: Final = 0.85
 AGREEMENT_DEG: Final = 6.0
 AGREEMENT_MM: Final = 20.0
 VIEW_DISAGREEMENT_MM: Final = 20.0
-MIRROR_MARGIN: Final = 0.05
 VESSEL_NCC_FAILED: Final = 0.1
 VESSEL_NCC_OK: Final = 0.3
 
@@ -50,16 +49,15 @@ class Quality:
 
 def assess(
     mncc: float, silhouette_dice: float, stage_rotation_deg: float, stage_translation_mm: float, *,
-    evidence: "ViewEvidence | None" = None, doubts: tuple[str, ...] = (),
+    evidence: "ViewEvidence | None" = None, mirror: "MirrorTest | None" = None, doubts: tuple[str, ...] = (),
 ) -> Quality:
-    """Apply the rule above to one view's numbers (``evidence``: the objective's terms at the final pose and
-    its mirror image; ``doubts``: failed consistency checks, worded)."""
+    """Apply the rule above to one view's numbers (``evidence``: the objective's terms at the final pose;
+    ``mirror``: the case's mirrored-CTA test; ``doubts``: failed consistency checks, worded)."""
     failed, doubtful = [], list(doubts)
-    margin = None if evidence is None else evidence.mirror_margin
-    if margin is not None and margin < -MIRROR_MARGIN:
-        failed.append(f"the runs' vessels fit the CTA mirrored left-right better (vessel NCC {evidence.mirrored.vessel_ncc:.2f} "
-                      f"mirrored, {evidence.final.vessel_ncc:.2f} as it is): check the CTA's left-right orientation")
-    vessel_ncc = None if evidence is None else evidence.final.vessel_ncc
+    if mirror is not None and mirror.mirrored:
+        failed.append(f"the CTA mirrored left-right explains the runs better (objective {mirror.mirrored_loss:.3f} against "
+                      f"{mirror.loss:.3f}): check the CTA's left-right orientation (its header) before using the result")
+    vessel_ncc = None if evidence is None else evidence.vessel_ncc
     if vessel_ncc is not None and vessel_ncc < VESSEL_NCC_FAILED:
         failed.append(f"vessel NCC {vessel_ncc:.2f} < {VESSEL_NCC_FAILED}: the CTA's vessels are not where the run shows "
                       "vessels (a wrong pose, or a run of another patient)")

@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from ..render.renderer import Renderer
     from .bound import BoundedMove
     from .evidence import ViewEvidence
+    from .mirror import MirrorTest
     from .opacified import VesselSelection
     from .tto import TTOResult
 
@@ -95,7 +96,7 @@ class ViewOutcome:
     """Everything one view went through. ``init_pose`` is the pose after the Init stage: the
     view's own calibrated Init, or, registering one patient pose, the fused one; ``search_pose``
     the pose after the similarity search (None: it did not run); ``evidence`` the objective's terms at
-    the final pose and its mirror image (``evidence.py``)."""
+    the final pose (``evidence.py``)."""
 
     key: str
     prepared: PreparedDSA
@@ -143,6 +144,7 @@ class Registration:
     search: SearchTrace | None = None
     vessel_evidence: bool = True
     bound: "BoundedMove | None" = None
+    mirror: "MirrorTest | None" = None
 
 
 @dataclass

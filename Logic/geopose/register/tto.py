@@ -31,7 +31,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING, Mapping, Sequence
 
 import numpy as np
 
@@ -44,8 +44,11 @@ from .objective import Objective, clip_like_target, combine, fit_like_target
 from .opacified import VesselSelection, read_opacified, vessel_shift_mm
 from .progress import Monitor
 
+if TYPE_CHECKING:
+    from ..dsa import PreparedDSA
+
 __all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "test_time_optimise", "test_time_optimise_starts",
-           "biplanar_penalty"]
+           "biplanar_penalty", "tto_views"]
 
 #: The render channels the objective uses: the total density, the cranium and the vessels.
 TTO_CHANNELS = ("total", "cranium", "vessels")
@@ -74,6 +77,11 @@ class TTOView:
     vessels: np.ndarray
     detector: Detector
     pose: np.ndarray
+
+
+def tto_views(views: Mapping[str, "PreparedDSA"], poses: Mapping[str, np.ndarray]) -> list[TTOView]:
+    """The preprocessed ``views`` set up for :func:`test_time_optimise`, starting from ``poses``."""
+    return [TTOView(k, v.tto_image, v.tto_mask, v.tto_vessels, v.tto_detector, poses[k]) for k, v in views.items()]
 
 
 @dataclass(frozen=True)
