@@ -45,6 +45,7 @@ def view_rows(case, reg) -> list[dict]:
             "stage_translation_mm": shift, **(view.evidence.as_dict() if view.evidence else {}),
             "chosen_start": reg.registration.chosen_start, "tto_objective": reg.registration.tto_objective,
             "vessel_evidence": reg.registration.vessel_evidence, "masks": reg.labels_source,
+            "mirror": None if reg.registration.mirror is None else reg.registration.mirror.as_dict(),
             "mpcd_mm": final.get("mpcd_mm"), "rotation_error_deg": final["rotation_error_deg"],
             "source_distance_mm": final["source_distance_mm"], "dicom_rotation_error_deg": dicom["rotation_error_deg"],
             "dicom_source_distance_mm": dicom["source_distance_mm"], "dicom_mpcd_mm": dicom.get("mpcd_mm"),

@@ -5,9 +5,10 @@ but a one-sided injection's vessels then lie on the wrong side; one rigid patien
 fit both views' vessels, yet each view alone fits them partly, so the final pose's own numbers
 do not tell it. The test builds the hypothesis: the CTA and its masks mirrored across the grid's
 centre plane normal to the array axis nearest RAS x (left-right), optimised by a short TTO from
-the registration's own patient pose. If that fits the runs better by the objective
-(``objective.py``, both views summed) than the result does, by more than
-:data:`MIRROR_LOSS_MARGIN`, the sides are in doubt. Needs PyTorch (the TTO); without vessels in
+the registration's own patient pose. The result must fit the runs better by the objective
+(``objective.py``, both views summed) than that, by at least :data:`MIRROR_LOSS_MARGIN`; otherwise
+the sides are in doubt (validation phantom 6011: a correct CTA beat its mirror image by 0.146, the
+same CTA with its sides swapped by -0.002). Needs PyTorch (the TTO); without vessels in
 the CTA there is nothing to tell the sides by and the test is not run.
 """
 
@@ -29,15 +30,15 @@ __all__ = ["MIRROR_TTO_ITERATIONS", "MIRROR_LOSS_MARGIN", "MirrorTest", "mirrore
 
 #: TTO steps of the mirrored hypothesis, from the registration's own patient pose.
 MIRROR_TTO_ITERATIONS: Final = 12
-#: The mirrored hypothesis must beat the result by this much (objective, both views summed) to fail it.
-MIRROR_LOSS_MARGIN: Final = 0.02
+#: The result must beat the mirrored hypothesis by this much (objective, both views summed) to pass.
+MIRROR_LOSS_MARGIN: Final = 0.03
 
 
 @dataclass(frozen=True)
 class MirrorTest:
     """The objective (both views summed) of the result (``loss``) and of the mirrored CTA after its short
-    TTO (``mirrored_loss``); ``margin`` = mirrored less result: below ``-MIRROR_LOSS_MARGIN``, the
-    mirrored CTA explains the runs better."""
+    TTO (``mirrored_loss``); ``margin`` = mirrored less result: below :data:`MIRROR_LOSS_MARGIN`, the
+    mirrored CTA explains the runs about as well or better."""
 
     loss: float
     mirrored_loss: float
@@ -48,7 +49,7 @@ class MirrorTest:
 
     @property
     def mirrored(self) -> bool:
-        return self.margin < -MIRROR_LOSS_MARGIN
+        return self.margin < MIRROR_LOSS_MARGIN
 
     def as_dict(self) -> dict:
         return {"loss": self.loss, "mirrored_loss": self.mirrored_loss, "margin": self.margin, "mirrored": self.mirrored,
