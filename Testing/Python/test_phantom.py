@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import json
 
 import numpy as np
@@ -14,15 +16,20 @@ from geopose.dsa import read_dsa, write_dsa_dicom
 from geopose.geometry import project_points, view_from_primary_angle
 from geopose.phantom import labels as L
 from geopose.phantom import make_subject
+from geopose.phantom.anatomy import rasterise_head, sample_head
 from geopose.phantom.cli import OUTPUT_FILES, register
+from geopose.phantom.contrast import ARTERIAL_HU_RANGE, PLAQUE_HU
 from geopose.phantom.dsa import (
     DETECTOR_MATRICES_PX,
     SDD_RANGE_MM,
     dsa_renderer,
     sample_acquisition,
     sample_biplane,
+    sample_injection,
     simulate_dsa,
 )
+from geopose.phantom.raster import Grid
+from geopose.phantom.veins import PETROUS_Z_MM
 
 SPACING = 2.0
 
@@ -52,7 +59,149 @@ def test_same_seed_same_subject_and_other_seeds_differ(subject):
     assert np.mean(other.cta.array != subject.cta.array) > 0.1
 
 
+#: SHA-256 of subject 11's geometry and poses (:func:`_geometry_sha256`) computed with the code before the
+#: CTA realism (commit 77bf0d1): the appearance draws come from their own stream and leave them unchanged.
+GEOMETRY_SHA256 = "ed91ce0af8d69b0b864044049e94e4805987aab5603d28a9d5766bdc3dfa2886"
+
+
+def _geometry_sha256(seed: int) -> str:
+    """The native-to-canonical transform, the head scale, every artery's points and radii, and the
+    injection and true poses ``write_phantom`` draws for subject ``seed``."""
+    digest = hashlib.sha256()
+    s = make_subject(seed, spacing_mm=4.0)
+    digest.update(np.round(s.native_to_canonical, 9).tobytes())
+    digest.update(np.round(s.params.scale, 9).tobytes())
+    for a in s.params.arteries:
+        digest.update(a["name"].encode())
+        digest.update(np.round(a["points"], 6).tobytes())
+        digest.update(np.round(a["radii"], 6).tobytes())
+    rng = np.random.default_rng([seed, 1])
+    digest.update(sample_injection(rng).encode())
+    acqs, iso = sample_biplane(rng, s)
+    for a in acqs:
+        digest.update(np.round(a.pose(iso).matrix[0].numpy(), 6).tobytes())
+    return digest.hexdigest()
+
+
+def test_geometry_and_poses_kept_by_the_appearance_streams():
+    assert _geometry_sha256(11) == GEOMETRY_SHA256
+
+
+def _head_points(subject, kji: np.ndarray) -> np.ndarray:
+    """Head-frame points (mm) of native voxel indices ``(N, 3)`` (k, j, i)."""
+    ijk = np.c_[kji[:, ::-1], np.ones(len(kji))].T
+    return (np.linalg.inv(subject.head_to_native) @ subject.cta.ijk_to_centred @ ijk)[:3].T
+
+
+def _neighbours(mask: np.ndarray) -> np.ndarray:
+    """``mask`` dilated by its 26 neighbours."""
+    out = mask.copy()
+    for dk in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            for di in (-1, 0, 1):
+                out |= np.roll(mask, (dk, dj, di), axis=(0, 1, 2))
+    return out
+
+
+def test_lumen_hu_falls_along_the_tree_and_varies_between_subjects(subject):
+    lines = {c["name"]: c for c in subject.centerlines}
+    every = np.concatenate([c["lumen_hu"] for c in subject.centerlines])
+    assert every.min() >= ARTERIAL_HU_RANGE[0] and every.max() <= ARTERIAL_HU_RANGE[1]
+    assert every.max() - every.min() > 40  # not one constant HU
+    cca = np.median(np.concatenate([lines[f"cca_{s}"]["lumen_hu"] for s in ("left", "right")]))
+    cortical = np.median(np.concatenate([c["lumen_hu"][-5:] for c in subject.centerlines if c["name"].startswith("cortical")]))
+    assert cortical < cca - 20  # lower distally
+    ica = lines["ica_left"]["lumen_hu"]
+    assert np.all(np.abs(np.diff(ica)) < 5)  # smooth along a vessel
+    # the CTA shows it: the voxels on the thick ICA's centreline (full coverage) read its lumen HU
+    c = lines["ica_left"]
+    ijk = np.rint(np.c_[c["points_mm"], np.ones(len(ica))] @ np.linalg.inv(subject.cta.ijk_to_centred).T)[:, :3].astype(int)
+    p = subject.params
+    read = subject.cta.array[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+    assert np.median(np.abs(read - (ica * p.hu_gain + p.hu_offset))) < p.noise_sd_hu + 10
+    bolus = [sample_head(np.random.default_rng(seed), seed).hu["vessel"] for seed in range(8)]
+    assert max(bolus) - min(bolus) > 100  # per-subject bolus level
+
+
+def test_sinuses_dura_are_labelled_apart_from_the_arteries(subject):
+    lab, hu = subject.labels.array, subject.cta.array
+    venous = np.isin(lab, L.label_groups()["venous_sinus"])
+    assert (lab == L.VENOUS_SINUS + L.INTRACRANIAL_OFFSET).sum() > 500 and (lab == L.VENOUS_SINUS).sum() > 500  # sinuses, jugulars
+    assert not np.any(L.vessel_mask(lab) & (venous | (lab == L.DURA)))
+    assert 140 <= np.median(hu[venous]) <= 380 and np.median(hu[venous]) < subject.params.hu["vessel"]
+    assert (lab == L.DURA).sum() > 1000 and 35 <= np.median(hu[lab == L.DURA]) <= 110
+    # the cranium group is still one solid mask holding the intracranial sinuses and the dura
+    cranium = L.cranium_mask(lab)
+    filled = sitk.GetArrayFromImage(sitk.BinaryFillhole(sitk.GetImageFromArray(cranium.astype(np.uint8))))
+    assert np.array_equal(filled > 0, cranium)
+    assert np.all(cranium[np.isin(lab, [L.VENOUS_SINUS + L.INTRACRANIAL_OFFSET, L.DURA])])
+    assert not np.any(cranium[lab == L.VENOUS_SINUS])
+    # the jugular veins go down the neck; the cavernous sinus wraps the cavernous ICA
+    z = _head_points(subject, np.argwhere(lab == L.VENOUS_SINUS))[:, 2] / subject.params.scale[2]
+    assert z.min() < -150
+
+
+def test_ica_runs_through_a_bone_canal_and_the_cavernous_sinus(subject):
+    lab, hu = subject.labels.array, subject.cta.array
+    ica = np.isin(lab, L.with_intracranial([L.ICA_LEFT, L.ICA_RIGHT]))
+    kji = np.argwhere(ica)
+    z = _head_points(subject, kji)[:, 2] / subject.params.scale[2]
+    canal = np.zeros_like(ica)
+    sel = kji[(z > PETROUS_Z_MM[0] + 3) & (z < PETROUS_Z_MM[1] - 3)]
+    canal[tuple(sel.T)] = True
+    bone = (hu > 700) & ~L.vessel_mask(lab)
+    touching = canal & _neighbours(bone)
+    assert canal.sum() > 10 and touching.sum() / canal.sum() > 0.7
+    venous = np.isin(lab, L.label_groups()["venous_sinus"])
+    cav = kji[(z > -45) & (z < -36)]
+    assert np.mean(_neighbours(venous)[tuple(cav.T)]) > 0.5
+
+
+def test_calcified_plaques_are_dense_and_small():
+    found = []
+    for seed in range(12):
+        p = sample_head(np.random.default_rng(seed), seed)
+        found += p.enhancement.plaques
+    assert 0.1 < len(found) / (12 * 4) < 0.7  # some subjects, some sites
+    assert {q["site"] for q in found} == {"bifurcation", "siphon"}
+    assert all(PLAQUE_HU[0] <= q["hu"] <= PLAQUE_HU[1] and q["radius_mm"] <= 2.0 for q in found)
+    # rasterised: a 0.5 mm grid about one plaque reads its HU at the centre
+    seed = next(s for s in range(12) if sample_head(np.random.default_rng(s), s).enhancement.plaques)
+    p = sample_head(np.random.default_rng(seed), seed)
+    q = p.enhancement.plaques[0]
+    m = np.diag([0.5, 0.5, 0.5, 1.0])
+    m[:3, 3] = np.asarray(q["centre_mm"]) - 0.5 * 20
+    hu, _ = rasterise_head(p, Grid((41, 41, 41), m))
+    expected = q["hu"] * p.hu_gain + p.hu_offset
+    assert abs(hu[20, 20, 20] - expected) < 4 * p.noise_sd_hu + 5
+    without, _ = rasterise_head(dataclasses.replace(p, enhancement=dataclasses.replace(p.enhancement, plaques=[])), Grid((41, 41, 41), m))
+    changed_mm3 = np.sum(np.abs(hu - without) > 50) * 0.5**3
+    assert 0 < changed_mm3 < 4 / 3 * np.pi * (q["radius_mm"] + 0.5) ** 3  # small: only its ball
+
+
+def test_noise_is_correlated_and_streaks_are_faint():
+    p = sample_head(np.random.default_rng(5), 5)
+    m = np.diag([3.0, 3.0, 3.0, 1.0])
+    m[:3, 3] = -96.0
+    m[2, 3] = -160.0
+    grid = Grid((64, 64, 64), m)
+    quiet = dataclasses.replace(p, noise_sd_hu=0.0, enhancement=dataclasses.replace(p.enhancement, streaks=[]))
+    base, _ = rasterise_head(quiet, grid)
+    noisy, _ = rasterise_head(dataclasses.replace(p, enhancement=quiet.enhancement), grid)
+    streaked, _ = rasterise_head(dataclasses.replace(quiet, enhancement=p.enhancement), grid)
+    inside = (base > -900) & (base < 2000)  # away from the clip at -1024 HU
+    noise = (noisy - base)[inside]
+    assert abs(noise.std() - p.noise_sd_hu) < 0.15 * p.noise_sd_hu + 1
+    d = np.where(inside, noisy - base, 0.0)
+    r = np.sum(d[:, :, 1:] * d[:, :, :-1]) / np.sum(d * d)
+    assert 0.15 < r < 0.8  # correlated a little
+    streak = streaked - base
+    assert 5 < np.abs(streak).max() <= 40
+    assert np.mean(np.abs(streak) > 2) < 0.05  # faint lines in a few slices
+
+
 def test_tissue_hu(subject):
+
     hu = subject.cta.array
     lab = subject.labels.array
     ica = np.isin(lab, L.with_intracranial([L.ICA_LEFT, L.ICA_RIGHT]))

@@ -51,7 +51,8 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
     _write_volume(subject.cta, out / "cta.nii.gz", np.int16)
     _write_volume(subject.labels, out / "labels.nii.gz", np.uint8)
     lines = [
-        {"name": c["name"], "label": c["label"], "points_mm": np.round(c["points_mm"], 3).tolist(), "radii_mm": np.round(c["radii_mm"], 3).tolist()}
+        {"name": c["name"], "label": c["label"], "points_mm": np.round(c["points_mm"], 3).tolist(), "radii_mm": np.round(c["radii_mm"], 3).tolist(),
+         "lumen_hu": np.round(c["lumen_hu"]).tolist()}
         for c in subject.centerlines
     ]
     (out / "centerlines.json").write_text(json.dumps({"frame": "centred native (RAS axes, origin at the CTA voxel-grid centre), mm", "centerlines": lines}))

@@ -65,7 +65,8 @@ def _centred_grid(shape_ijk, spacing) -> np.ndarray:
 @dataclass
 class Subject:
     """One phantom subject. ``cta`` (HU) and ``labels`` (uint8, see ``labels``) share the
-    native grid; ``centerlines`` are in the centred native frame (mm)."""
+    native grid; ``centerlines`` (arteries: ``name``, ``label``, ``points_mm``, ``radii_mm``,
+    ``lumen_hu``) are in the centred native frame (mm)."""
 
     seed: int
     params: HeadParams
@@ -123,6 +124,11 @@ class Subject:
             "circle_of_willis": dict(self.params.cow),
             "hu": dict(self.params.hu),
             "noise_sd_hu": self.params.noise_sd_hu,
+            "lumen_hu_range": [float(min(a["hu"].min() for a in self.params.arteries)),
+                               float(max(a["hu"].max() for a in self.params.arteries))],
+            "enhancement": self.params.enhancement.record,
+            "enhancement_doc": "appearance draws (contrast.Enhancement): plaque centres in the head frame (mm, "
+            "docs/phantoms.md), HU",
         }
 
 
@@ -182,5 +188,6 @@ def make_subject(
     centerlines = []
     for a in params.arteries:
         pts = a["points"] @ native_from_head[:3, :3].T + native_from_head[:3, 3]
-        centerlines.append({"name": a["name"], "label": int(a["label"]), "points_mm": pts, "radii_mm": np.asarray(a["radii"], float)})
+        centerlines.append({"name": a["name"], "label": int(a["label"]), "points_mm": pts, "radii_mm": np.asarray(a["radii"], float),
+                            "lumen_hu": np.asarray(a["hu"], float)})
     return Subject(seed, params, cta, labels, centerlines, native_to_canonical)
