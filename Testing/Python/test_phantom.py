@@ -23,6 +23,7 @@ from geopose.phantom.dsa import (
     DETECTOR_MATRICES_PX,
     SDD_RANGE_MM,
     dsa_renderer,
+    injected_arteries,
     sample_acquisition,
     sample_biplane,
     sample_injection,
@@ -342,6 +343,19 @@ def test_dicom_carries_geometry(dsa_pair, tmp_path):
     assert np.allclose(back.attenuation(), sims[1].run.attenuation(), atol=1.0)
 
 
+def test_cli_writes_a_dense_avm_run(tmp_path):
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["phantom", "--seed", "4", "--out", str(tmp_path), "--spacing-mm", "4", "--max-matrix-px", "128",
+                              "--injection", "avm"])
+    assert args.func(args) == 0
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert truth["injection"] == "avm" and truth["pathology"] == "avm" and truth["avm"]["radius_mm"] > 5
+    assert L.NIDUS in truth["opacified_labels"]["early"] and L.VENOUS_SINUS + L.INTRACRANIAL_OFFSET in truth["opacified_labels"]["venous"]
+    labels = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "labels.nii.gz")))
+    assert np.any(labels == L.NIDUS)
+
+
 def test_cli_writes_the_six_files(tmp_path):
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="command"))
@@ -360,3 +374,71 @@ def test_cli_writes_the_six_files(tmp_path):
     assert np.allclose(ras[:3] * [-1, -1, 1], lps, atol=1e-3)
     lines = json.loads((tmp_path / "centerlines.json").read_text())["centerlines"]
     assert {"ica_left", "ica_right", "basilar"} <= {c["name"] for c in lines}
+
+
+@pytest.fixture(scope="module")
+def avm_subject():
+    return make_subject(11, spacing_mm=SPACING, pathology="avm")
+
+
+def test_avm_adds_a_nidus_and_changes_nothing_else(subject, avm_subject):
+    lab, hu = avm_subject.labels.array, avm_subject.cta.array
+    nidus = lab == L.NIDUS
+    assert nidus.sum() > 100 and np.all(L.cranium_mask(lab)[nidus]) and not np.any(L.vessel_mask(lab) & nidus)
+    assert np.median(hu[nidus]) > 120
+    centre = avm_subject.truth()["avm"]["centre_native_mm"]
+    kji = np.argwhere(nidus)
+    ijk = np.c_[kji[:, ::-1], np.ones(len(kji))] @ avm_subject.cta.ijk_to_centred.T
+    assert np.median(np.linalg.norm(ijk[:, :3] - centre, axis=1)) < avm_subject.params.avm["radius_mm"] + 5
+    # its draining vein reaches the sagittal sinus; its feeder is an artery
+    drain = avm_subject.params.avm["drain"]["points"]
+    sss = next(v["points"] for v in avm_subject.params.veins if v["name"] == "superior_sagittal_sinus")
+    assert np.linalg.norm(sss - drain[-1], axis=1).min() < 1.0
+    assert any(c["name"].startswith("avm_feeder") for c in avm_subject.centerlines)
+    # away from the AVM the subject is the one without it
+    far = ~_neighbours(_neighbours(nidus | (lab != subject.labels.array)))
+    assert np.array_equal(avm_subject.native_to_canonical, subject.native_to_canonical)
+    assert np.mean(far) > 0.97 and np.array_equal(hu[far], subject.cta.array[far])
+    with pytest.raises(ValueError, match="pathology"):
+        make_subject(11, spacing_mm=4.0, pathology="tumour")
+
+
+@pytest.mark.parametrize("injection", ["all_territories", "avm", "late_venous"])
+def test_dense_runs_opacify_their_labels(subject, avm_subject, injection):
+    s = avm_subject if injection == "avm" else subject
+    filled = injected_arteries(s.labels.array, injection)
+    arteries = L.vessel_mask(s.labels.array)
+    assert np.array_equal(filled & arteries, arteries)  # every artery, both sides
+    venous = np.isin(s.labels.array, L.label_groups()["venous_sinus"])
+    assert np.any(filled & venous) == (injection != "all_territories")
+    assert np.any(filled & (s.labels.array == L.NIDUS)) == (injection == "avm")
+    routine = injected_arteries(s.labels.array, "ica_left")
+    assert not np.any(routine & (venous | (s.labels.array == L.NIDUS)))  # an arterial phase shows no veins
+    rng = np.random.default_rng(3)
+    acqs, iso = sample_biplane(rng, s)
+    sims = {}
+    for run in ("arch", injection):
+        drr = dsa_renderer(s, run, render_px=128)
+        sims[run] = simulate_dsa(s, acqs[0], acqs[0].pose(iso), np.random.default_rng(5), injection=run, drr=drr, render_px=128,
+                                 max_matrix_px=256)
+    # the MAP shows it: a blush over the whole cranium, or the sinuses bright over it
+    def blush(sim):
+        m = sim.map.astype(float)
+        outside = m[~sim.cranium_mask & (m > 0)]
+        return (np.median(m[sim.cranium_mask]) - np.median(outside)) / np.percentile(m[sim.cranium_mask], 99.5)
+
+    def sinuses(sim):
+        pts = np.concatenate([v["points"] for v in s.params.veins if not v["name"].startswith("cavernous")])
+        px, _ = project_points(sim.pose, sim.run.detector, pts @ s.head_to_native[:3, :3].T + s.head_to_native[:3, 3])
+        r, c = np.rint(px).astype(int).T
+        ok = (r >= 0) & (r < sim.map.shape[0]) & (c >= 0) & (c < sim.map.shape[1])
+        return np.median(sim.map[r[ok], c[ok]]) / np.median(sim.map[sim.cranium_mask])
+
+    measure = blush if injection == "all_territories" else sinuses
+    dense, routine = measure(sims[injection]), measure(sims["arch"])
+    assert dense > 1.3 * routine, (dense, routine)
+
+
+def test_avm_run_needs_an_avm_subject(subject):
+    with pytest.raises(ValueError, match="pathology='avm'"):
+        dsa_renderer(subject, "avm", render_px=64)

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import labels as L
+from .avm import AVM_STREAM, PATHOLOGIES, add_drainage, build_avm
 from .contrast import ENHANCEMENT_STREAM, Enhancement, add_streaks, correlated_noise, lumen_hu, sample_enhancement
 from .raster import Grid, SmoothField, rasterise_tube
 from .veins import build_veins, ica_segment, petrous
@@ -53,6 +54,7 @@ class HeadParams:
     arteries: list[dict] = field(default_factory=list)  # name, label, points, radii, hu (lumen HU per point)
     veins: list[dict] = field(default_factory=list)  # name, points, radii
     enhancement: Enhancement | None = None
+    avm: dict | None = None  # ``avm.build_avm`` with its ``drain``, for pathology "avm"
 
 
 #: HU of the carotid canal's wall (dense petrous bone directly around the lumen) and its thickness (mm).
@@ -61,10 +63,13 @@ CANAL_WALL_MM = 3.0
 DURA_MM = 1.2
 
 
-def sample_head(rng: np.random.Generator, seed: int) -> HeadParams:
+def sample_head(rng: np.random.Generator, seed: int, pathology: str | None = None) -> HeadParams:
     """Draw one subject's anatomy and appearance parameters. ``rng`` (the subject's main stream)
     draws the head and its arteries; the appearance beyond the tissue HU and the veins come from
-    the stream ``[seed, ENHANCEMENT_STREAM]`` (``contrast``)."""
+    the stream ``[seed, ENHANCEMENT_STREAM]`` (``contrast``); ``pathology`` ``"avm"`` adds an
+    arteriovenous malformation from the stream ``[seed, AVM_STREAM]`` (``avm``) and changes nothing else."""
+    if pathology is not None and pathology not in PATHOLOGIES:
+        raise ValueError(f"unknown pathology {pathology!r}; choose one of {list(PATHOLOGIES)} or None")
     u = rng.uniform
     hu = {
         "grey": u(35, 40), "white": u(26, 31), "csf": u(4, 12), "soft": u(38, 52), "fat": u(-110, -80),
@@ -98,12 +103,21 @@ def sample_head(rng: np.random.Generator, seed: int) -> HeadParams:
         cow=cow,
         tortuosity_mm=u(1.0, 4.0),
     )
-    p.arteries = build_arteries(p, rng, lambda pts: inside_cavity_margin(p, pts))
+    def margin(pts):
+        return inside_cavity_margin(p, pts)
+
+    p.arteries = build_arteries(p, rng, margin)
     look = np.random.default_rng([seed, ENHANCEMENT_STREAM])
     p.enhancement = sample_enhancement(look, p.arteries)
+    if pathology == "avm":
+        avm_rng = np.random.default_rng([seed, AVM_STREAM])
+        p.avm = build_avm(p.arteries, p.scale, avm_rng, margin)
+        p.arteries.append(p.avm["feeder"])
     for a, values in zip(p.arteries, lumen_hu(p.arteries, hu["vessel"], p.enhancement, look)):
         a["hu"] = values
-    p.veins = build_veins(p.scale, p.arteries, look, lambda pts: inside_cavity_margin(p, pts))
+    p.veins = build_veins(p.scale, p.arteries, look, margin)
+    if p.avm is not None:
+        add_drainage(p.avm, p.veins, p.scale, avm_rng, margin)
     return p
 
 
@@ -367,6 +381,18 @@ def rasterise_head(p: HeadParams, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     for art in p.arteries:
         rasterise_tube(grid, art["points"], art["radii"], cov, vlab, art["label"], values=value, point_values=art["hu"])
     _mix(hu, cov, value)
+    if p.avm is not None:  # nidus at its feeder's HU, the drain between it and the sinuses
+        cov[:] = 0.0
+        nidus = np.zeros(grid.shape_kji, np.uint8)
+        feeder_hu = float(p.avm["feeder"]["hu"][-1])
+        for tube in p.avm["nidus"]:
+            rasterise_tube(grid, tube["points"], tube["radii"], cov, nidus, L.NIDUS)
+        _mix(hu, cov, feeder_hu)
+        cov[:] = 0.0
+        rasterise_tube(grid, p.avm["drain"]["points"], p.avm["drain"]["radii"], cov, nidus, L.NIDUS)
+        _mix(hu, cov, 0.5 * (feeder_hu + hu_p["venous"]))
+        lab[(nidus > 0) & cranium & (vlab == 0)] = L.NIDUS
+        del nidus
     cov[:] = 0.0
     value[:] = 0.0
     for q in p.enhancement.plaques:
