@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import json
 
 import numpy as np
@@ -14,15 +16,21 @@ from geopose.dsa import read_dsa, write_dsa_dicom
 from geopose.geometry import project_points, view_from_primary_angle
 from geopose.phantom import labels as L
 from geopose.phantom import make_subject
+from geopose.phantom.anatomy import rasterise_head, sample_head
 from geopose.phantom.cli import OUTPUT_FILES, register
+from geopose.phantom.contrast import ARTERIAL_HU_RANGE, PLAQUE_HU
 from geopose.phantom.dsa import (
     DETECTOR_MATRICES_PX,
     SDD_RANGE_MM,
     dsa_renderer,
+    injected_arteries,
     sample_acquisition,
     sample_biplane,
+    sample_injection,
     simulate_dsa,
 )
+from geopose.phantom.raster import Grid
+from geopose.phantom.veins import PETROUS_Z_MM
 
 SPACING = 2.0
 
@@ -52,7 +60,149 @@ def test_same_seed_same_subject_and_other_seeds_differ(subject):
     assert np.mean(other.cta.array != subject.cta.array) > 0.1
 
 
+#: SHA-256 of subject 11's geometry and poses (:func:`_geometry_sha256`) computed with the code before the
+#: CTA realism (commit 77bf0d1): the appearance draws come from their own stream and leave them unchanged.
+GEOMETRY_SHA256 = "ed91ce0af8d69b0b864044049e94e4805987aab5603d28a9d5766bdc3dfa2886"
+
+
+def _geometry_sha256(seed: int) -> str:
+    """The native-to-canonical transform, the head scale, every artery's points and radii, and the
+    injection and true poses ``write_phantom`` draws for subject ``seed``."""
+    digest = hashlib.sha256()
+    s = make_subject(seed, spacing_mm=4.0)
+    digest.update(np.round(s.native_to_canonical, 9).tobytes())
+    digest.update(np.round(s.params.scale, 9).tobytes())
+    for a in s.params.arteries:
+        digest.update(a["name"].encode())
+        digest.update(np.round(a["points"], 6).tobytes())
+        digest.update(np.round(a["radii"], 6).tobytes())
+    rng = np.random.default_rng([seed, 1])
+    digest.update(sample_injection(rng).encode())
+    acqs, iso = sample_biplane(rng, s)
+    for a in acqs:
+        digest.update(np.round(a.pose(iso).matrix[0].numpy(), 6).tobytes())
+    return digest.hexdigest()
+
+
+def test_geometry_and_poses_kept_by_the_appearance_streams():
+    assert _geometry_sha256(11) == GEOMETRY_SHA256
+
+
+def _head_points(subject, kji: np.ndarray) -> np.ndarray:
+    """Head-frame points (mm) of native voxel indices ``(N, 3)`` (k, j, i)."""
+    ijk = np.c_[kji[:, ::-1], np.ones(len(kji))].T
+    return (np.linalg.inv(subject.head_to_native) @ subject.cta.ijk_to_centred @ ijk)[:3].T
+
+
+def _neighbours(mask: np.ndarray) -> np.ndarray:
+    """``mask`` dilated by its 26 neighbours."""
+    out = mask.copy()
+    for dk in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            for di in (-1, 0, 1):
+                out |= np.roll(mask, (dk, dj, di), axis=(0, 1, 2))
+    return out
+
+
+def test_lumen_hu_falls_along_the_tree_and_varies_between_subjects(subject):
+    lines = {c["name"]: c for c in subject.centerlines}
+    every = np.concatenate([c["lumen_hu"] for c in subject.centerlines])
+    assert every.min() >= ARTERIAL_HU_RANGE[0] and every.max() <= ARTERIAL_HU_RANGE[1]
+    assert every.max() - every.min() > 40  # not one constant HU
+    cca = np.median(np.concatenate([lines[f"cca_{s}"]["lumen_hu"] for s in ("left", "right")]))
+    cortical = np.median(np.concatenate([c["lumen_hu"][-5:] for c in subject.centerlines if c["name"].startswith("cortical")]))
+    assert cortical < cca - 20  # lower distally
+    ica = lines["ica_left"]["lumen_hu"]
+    assert np.all(np.abs(np.diff(ica)) < 5)  # smooth along a vessel
+    # the CTA shows it: the voxels on the thick ICA's centreline (full coverage) read its lumen HU
+    c = lines["ica_left"]
+    ijk = np.rint(np.c_[c["points_mm"], np.ones(len(ica))] @ np.linalg.inv(subject.cta.ijk_to_centred).T)[:, :3].astype(int)
+    p = subject.params
+    read = subject.cta.array[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+    assert np.median(np.abs(read - (ica * p.hu_gain + p.hu_offset))) < p.noise_sd_hu + 10
+    bolus = [sample_head(np.random.default_rng(seed), seed).hu["vessel"] for seed in range(8)]
+    assert max(bolus) - min(bolus) > 100  # per-subject bolus level
+
+
+def test_sinuses_dura_are_labelled_apart_from_the_arteries(subject):
+    lab, hu = subject.labels.array, subject.cta.array
+    venous = np.isin(lab, L.label_groups()["venous_sinus"])
+    assert (lab == L.VENOUS_SINUS + L.INTRACRANIAL_OFFSET).sum() > 500 and (lab == L.VENOUS_SINUS).sum() > 500  # sinuses, jugulars
+    assert not np.any(L.vessel_mask(lab) & (venous | (lab == L.DURA)))
+    assert 140 <= np.median(hu[venous]) <= 380 and np.median(hu[venous]) < subject.params.hu["vessel"]
+    assert (lab == L.DURA).sum() > 1000 and 35 <= np.median(hu[lab == L.DURA]) <= 110
+    # the cranium group is still one solid mask holding the intracranial sinuses and the dura
+    cranium = L.cranium_mask(lab)
+    filled = sitk.GetArrayFromImage(sitk.BinaryFillhole(sitk.GetImageFromArray(cranium.astype(np.uint8))))
+    assert np.array_equal(filled > 0, cranium)
+    assert np.all(cranium[np.isin(lab, [L.VENOUS_SINUS + L.INTRACRANIAL_OFFSET, L.DURA])])
+    assert not np.any(cranium[lab == L.VENOUS_SINUS])
+    # the jugular veins go down the neck; the cavernous sinus wraps the cavernous ICA
+    z = _head_points(subject, np.argwhere(lab == L.VENOUS_SINUS))[:, 2] / subject.params.scale[2]
+    assert z.min() < -150
+
+
+def test_ica_runs_through_a_bone_canal_and_the_cavernous_sinus(subject):
+    lab, hu = subject.labels.array, subject.cta.array
+    ica = np.isin(lab, L.with_intracranial([L.ICA_LEFT, L.ICA_RIGHT]))
+    kji = np.argwhere(ica)
+    z = _head_points(subject, kji)[:, 2] / subject.params.scale[2]
+    canal = np.zeros_like(ica)
+    sel = kji[(z > PETROUS_Z_MM[0] + 3) & (z < PETROUS_Z_MM[1] - 3)]
+    canal[tuple(sel.T)] = True
+    bone = (hu > 700) & ~L.vessel_mask(lab)
+    touching = canal & _neighbours(bone)
+    assert canal.sum() > 10 and touching.sum() / canal.sum() > 0.7
+    venous = np.isin(lab, L.label_groups()["venous_sinus"])
+    cav = kji[(z > -45) & (z < -36)]
+    assert np.mean(_neighbours(venous)[tuple(cav.T)]) > 0.5
+
+
+def test_calcified_plaques_are_dense_and_small():
+    found = []
+    for seed in range(12):
+        p = sample_head(np.random.default_rng(seed), seed)
+        found += p.enhancement.plaques
+    assert 0.1 < len(found) / (12 * 4) < 0.7  # some subjects, some sites
+    assert {q["site"] for q in found} == {"bifurcation", "siphon"}
+    assert all(PLAQUE_HU[0] <= q["hu"] <= PLAQUE_HU[1] and q["radius_mm"] <= 2.0 for q in found)
+    # rasterised: a 0.5 mm grid about one plaque reads its HU at the centre
+    seed = next(s for s in range(12) if sample_head(np.random.default_rng(s), s).enhancement.plaques)
+    p = sample_head(np.random.default_rng(seed), seed)
+    q = p.enhancement.plaques[0]
+    m = np.diag([0.5, 0.5, 0.5, 1.0])
+    m[:3, 3] = np.asarray(q["centre_mm"]) - 0.5 * 20
+    hu, _ = rasterise_head(p, Grid((41, 41, 41), m))
+    expected = q["hu"] * p.hu_gain + p.hu_offset
+    assert abs(hu[20, 20, 20] - expected) < 4 * p.noise_sd_hu + 5
+    without, _ = rasterise_head(dataclasses.replace(p, enhancement=dataclasses.replace(p.enhancement, plaques=[])), Grid((41, 41, 41), m))
+    changed_mm3 = np.sum(np.abs(hu - without) > 50) * 0.5**3
+    assert 0 < changed_mm3 < 4 / 3 * np.pi * (q["radius_mm"] + 0.5) ** 3  # small: only its ball
+
+
+def test_noise_is_correlated_and_streaks_are_faint():
+    p = sample_head(np.random.default_rng(5), 5)
+    m = np.diag([3.0, 3.0, 3.0, 1.0])
+    m[:3, 3] = -96.0
+    m[2, 3] = -160.0
+    grid = Grid((64, 64, 64), m)
+    quiet = dataclasses.replace(p, noise_sd_hu=0.0, enhancement=dataclasses.replace(p.enhancement, streaks=[]))
+    base, _ = rasterise_head(quiet, grid)
+    noisy, _ = rasterise_head(dataclasses.replace(p, enhancement=quiet.enhancement), grid)
+    streaked, _ = rasterise_head(dataclasses.replace(quiet, enhancement=p.enhancement), grid)
+    inside = (base > -900) & (base < 2000)  # away from the clip at -1024 HU
+    noise = (noisy - base)[inside]
+    assert abs(noise.std() - p.noise_sd_hu) < 0.15 * p.noise_sd_hu + 1
+    d = np.where(inside, noisy - base, 0.0)
+    r = np.sum(d[:, :, 1:] * d[:, :, :-1]) / np.sum(d * d)
+    assert 0.15 < r < 0.8  # correlated a little
+    streak = streaked - base
+    assert 5 < np.abs(streak).max() <= 40
+    assert np.mean(np.abs(streak) > 2) < 0.05  # faint lines in a few slices
+
+
 def test_tissue_hu(subject):
+
     hu = subject.cta.array
     lab = subject.labels.array
     ica = np.isin(lab, L.with_intracranial([L.ICA_LEFT, L.ICA_RIGHT]))
@@ -193,6 +343,19 @@ def test_dicom_carries_geometry(dsa_pair, tmp_path):
     assert np.allclose(back.attenuation(), sims[1].run.attenuation(), atol=1.0)
 
 
+def test_cli_writes_a_dense_avm_run(tmp_path):
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["phantom", "--seed", "4", "--out", str(tmp_path), "--spacing-mm", "4", "--max-matrix-px", "128",
+                              "--injection", "avm"])
+    assert args.func(args) == 0
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert truth["injection"] == "avm" and truth["pathology"] == "avm" and truth["avm"]["radius_mm"] > 5
+    assert L.NIDUS in truth["opacified_labels"]["early"] and L.VENOUS_SINUS + L.INTRACRANIAL_OFFSET in truth["opacified_labels"]["venous"]
+    labels = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "labels.nii.gz")))
+    assert np.any(labels == L.NIDUS)
+
+
 def test_cli_writes_the_six_files(tmp_path):
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="command"))
@@ -211,3 +374,71 @@ def test_cli_writes_the_six_files(tmp_path):
     assert np.allclose(ras[:3] * [-1, -1, 1], lps, atol=1e-3)
     lines = json.loads((tmp_path / "centerlines.json").read_text())["centerlines"]
     assert {"ica_left", "ica_right", "basilar"} <= {c["name"] for c in lines}
+
+
+@pytest.fixture(scope="module")
+def avm_subject():
+    return make_subject(11, spacing_mm=SPACING, pathology="avm")
+
+
+def test_avm_adds_a_nidus_and_changes_nothing_else(subject, avm_subject):
+    lab, hu = avm_subject.labels.array, avm_subject.cta.array
+    nidus = lab == L.NIDUS
+    assert nidus.sum() > 100 and np.all(L.cranium_mask(lab)[nidus]) and not np.any(L.vessel_mask(lab) & nidus)
+    assert np.median(hu[nidus]) > 120
+    centre = avm_subject.truth()["avm"]["centre_native_mm"]
+    kji = np.argwhere(nidus)
+    ijk = np.c_[kji[:, ::-1], np.ones(len(kji))] @ avm_subject.cta.ijk_to_centred.T
+    assert np.median(np.linalg.norm(ijk[:, :3] - centre, axis=1)) < avm_subject.params.avm["radius_mm"] + 5
+    # its draining vein reaches the sagittal sinus; its feeder is an artery
+    drain = avm_subject.params.avm["drain"]["points"]
+    sss = next(v["points"] for v in avm_subject.params.veins if v["name"] == "superior_sagittal_sinus")
+    assert np.linalg.norm(sss - drain[-1], axis=1).min() < 1.0
+    assert any(c["name"].startswith("avm_feeder") for c in avm_subject.centerlines)
+    # away from the AVM the subject is the one without it
+    far = ~_neighbours(_neighbours(nidus | (lab != subject.labels.array)))
+    assert np.array_equal(avm_subject.native_to_canonical, subject.native_to_canonical)
+    assert np.mean(far) > 0.97 and np.array_equal(hu[far], subject.cta.array[far])
+    with pytest.raises(ValueError, match="pathology"):
+        make_subject(11, spacing_mm=4.0, pathology="tumour")
+
+
+@pytest.mark.parametrize("injection", ["all_territories", "avm", "late_venous"])
+def test_dense_runs_opacify_their_labels(subject, avm_subject, injection):
+    s = avm_subject if injection == "avm" else subject
+    filled = injected_arteries(s.labels.array, injection)
+    arteries = L.vessel_mask(s.labels.array)
+    assert np.array_equal(filled & arteries, arteries)  # every artery, both sides
+    venous = np.isin(s.labels.array, L.label_groups()["venous_sinus"])
+    assert np.any(filled & venous) == (injection != "all_territories")
+    assert np.any(filled & (s.labels.array == L.NIDUS)) == (injection == "avm")
+    routine = injected_arteries(s.labels.array, "ica_left")
+    assert not np.any(routine & (venous | (s.labels.array == L.NIDUS)))  # an arterial phase shows no veins
+    rng = np.random.default_rng(3)
+    acqs, iso = sample_biplane(rng, s)
+    sims = {}
+    for run in ("arch", injection):
+        drr = dsa_renderer(s, run, render_px=128)
+        sims[run] = simulate_dsa(s, acqs[0], acqs[0].pose(iso), np.random.default_rng(5), injection=run, drr=drr, render_px=128,
+                                 max_matrix_px=256)
+    # the MAP shows it: a blush over the whole cranium, or the sinuses bright over it
+    def blush(sim):
+        m = sim.map.astype(float)
+        outside = m[~sim.cranium_mask & (m > 0)]
+        return (np.median(m[sim.cranium_mask]) - np.median(outside)) / np.percentile(m[sim.cranium_mask], 99.5)
+
+    def sinuses(sim):
+        pts = np.concatenate([v["points"] for v in s.params.veins if not v["name"].startswith("cavernous")])
+        px, _ = project_points(sim.pose, sim.run.detector, pts @ s.head_to_native[:3, :3].T + s.head_to_native[:3, 3])
+        r, c = np.rint(px).astype(int).T
+        ok = (r >= 0) & (r < sim.map.shape[0]) & (c >= 0) & (c < sim.map.shape[1])
+        return np.median(sim.map[r[ok], c[ok]]) / np.median(sim.map[sim.cranium_mask])
+
+    measure = blush if injection == "all_territories" else sinuses
+    dense, routine = measure(sims[injection]), measure(sims["arch"])
+    assert dense > 1.3 * routine, (dense, routine)
+
+
+def test_avm_run_needs_an_avm_subject(subject):
+    with pytest.raises(ValueError, match="pathology='avm'"):
+        dsa_renderer(subject, "avm", render_px=64)

@@ -2,9 +2,17 @@
 
 *Head coordinates* (mm): RAS axes (+x patient right, +y anterior, +z superior),
 origin at the centre of the brain. A subject's head is a "standard head" whose
-tissue functions are evaluated at ``x / scale``; its arteries are polylines
-built directly in head coordinates. Everything is a smooth function of position,
-so the same subject can be rasterised on any grid (native or canonical).
+tissue functions are evaluated at ``x / scale``; its arteries and veins are
+polylines built directly in head coordinates. Everything is a smooth function of
+position, so the same subject can be rasterised on any grid (native or canonical);
+only the scanner's noise and streaks are tied to the grid, like a scanner's.
+
+The CTA is meant to be as hard to segment as a real one: the arterial lumen HU
+falls along the tree and varies between subjects (``contrast``), small arteries
+are partial-volume blends, the venous sinuses and the dura enhance too
+(``veins``), the ICA runs through a dense-bone carotid canal and the cavernous
+sinus, some subjects have calcified plaques, and the noise is correlated with
+faint streaks from the teeth and petrous bones.
 """
 
 from __future__ import annotations
@@ -14,7 +22,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import labels as L
+from .avm import AVM_STREAM, PATHOLOGIES, add_drainage, build_avm
+from .contrast import ENHANCEMENT_STREAM, Enhancement, add_streaks, correlated_noise, lumen_hu, sample_enhancement
 from .raster import Grid, SmoothField, rasterise_tube
+from .veins import build_veins, ica_segment, petrous
 from .vessels import build_arteries
 
 __all__ = ["HeadParams", "sample_head", "rasterise_head"]
@@ -40,17 +51,33 @@ class HeadParams:
     hu_offset: float
     cow: dict[str, float]
     tortuosity_mm: float
-    arteries: list[dict] = field(default_factory=list)
+    arteries: list[dict] = field(default_factory=list)  # name, label, points, radii, hu (lumen HU per point)
+    veins: list[dict] = field(default_factory=list)  # name, points, radii
+    enhancement: Enhancement | None = None
+    avm: dict | None = None  # ``avm.build_avm`` with its ``drain``, for pathology "avm"
 
 
-def sample_head(rng: np.random.Generator, seed: int) -> HeadParams:
-    """Draw one subject's anatomy and appearance parameters."""
+#: HU of the carotid canal's wall (dense petrous bone directly around the lumen) and its thickness (mm).
+CANAL_WALL_MM = 3.0
+#: Thickness (mm) of the enhancing dura under the inner table and of the falx.
+DURA_MM = 1.2
+
+
+def sample_head(rng: np.random.Generator, seed: int, pathology: str | None = None) -> HeadParams:
+    """Draw one subject's anatomy and appearance parameters. ``rng`` (the subject's main stream)
+    draws the head and its arteries; the appearance beyond the tissue HU and the veins come from
+    the stream ``[seed, ENHANCEMENT_STREAM]`` (``contrast``); ``pathology`` ``"avm"`` adds an
+    arteriovenous malformation from the stream ``[seed, AVM_STREAM]`` (``avm``) and changes nothing else."""
+    if pathology is not None and pathology not in PATHOLOGIES:
+        raise ValueError(f"unknown pathology {pathology!r}; choose one of {list(PATHOLOGIES)} or None")
     u = rng.uniform
     hu = {
         "grey": u(35, 40), "white": u(26, 31), "csf": u(4, 12), "soft": u(38, 52), "fat": u(-110, -80),
         "cortical": u(1450, 1900), "diploe": u(450, 800), "dense": u(1800, 2300), "teeth": u(2000, 2600),
-        "facial_bone": u(500, 800), "vessel": u(330, 560), "venous": u(150, 260), "globe": u(8, 18),
+        # vessel: the bolus, lumen HU of the common carotids; venous: the sinuses, below the arteries' start
+        "facial_bone": u(500, 800), "vessel": u(250, 600), "venous": u(160, 360), "globe": u(8, 18),
     }
+    hu["venous"] = min(hu["venous"], 0.95 * hu["vessel"])
     cow = {
         "acomm": float(rng.random() > 0.1),
         "pcomm_left": float(rng.choice([0.0, 0.6, 0.9, 1.4], p=[0.2, 0.45, 0.2, 0.15])),
@@ -70,13 +97,27 @@ def sample_head(rng: np.random.Generator, seed: int) -> HeadParams:
         atrophy=u(0.0, 1.0),
         ventricle_scale=u(0.8, 1.5),
         hu=hu,
-        noise_sd_hu=u(3.0, 10.0),
+        noise_sd_hu=u(5.0, 20.0),
         hu_gain=u(0.97, 1.03),
         hu_offset=u(-5.0, 5.0),
         cow=cow,
         tortuosity_mm=u(1.0, 4.0),
     )
-    p.arteries = build_arteries(p, rng, lambda pts: inside_cavity_margin(p, pts))
+    def margin(pts):
+        return inside_cavity_margin(p, pts)
+
+    p.arteries = build_arteries(p, rng, margin)
+    look = np.random.default_rng([seed, ENHANCEMENT_STREAM])
+    p.enhancement = sample_enhancement(look, p.arteries)
+    if pathology == "avm":
+        avm_rng = np.random.default_rng([seed, AVM_STREAM])
+        p.avm = build_avm(p.arteries, p.scale, avm_rng, margin)
+        p.arteries.append(p.avm["feeder"])
+    for a, values in zip(p.arteries, lumen_hu(p.arteries, hu["vessel"], p.enhancement, look)):
+        a["hu"] = values
+    p.veins = build_veins(p.scale, p.arteries, look, margin)
+    if p.avm is not None:
+        add_drainage(p.avm, p.veins, p.scale, avm_rng, margin)
     return p
 
 
@@ -308,28 +349,63 @@ def rasterise_head(p: HeadParams, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     _mix(brain, stem, hu_p["white"] + 4.0)
     del stem, csf
     _mix(hu, cav_frac, brain)
-    del brain, cav_frac
-    # dense petrous bone on top of the brain boundary
+    del brain
+    # enhancing dura: a thin layer under the inner table (and over the cranial floor), and the falx
+    wall = np.minimum(-d_in, Z - z_b)
+    dura = cav_frac * np.maximum(_ramp(np.abs(wall - 0.5 * DURA_MM) - 0.5 * DURA_MM, h),
+                                 _ramp(np.abs(X) - 0.5 * DURA_MM, h) * (Z > 15.0) * (wall > 0))
+    _mix(hu, dura, p.enhancement.dura_hu)
+    del cav_frac, wall, d_in, z_b
+    # dense petrous bone on top of the brain boundary, and the carotid canal around the petrous ICA
     for sx in (-1.0, 1.0):
         _mix(hu, _tube(grid, p.scale, [(56 * sx, -30, -50), (38 * sx, -15, -46), (18 * sx, 2, -43)], 6.0), hu_p["dense"])
+    canal = np.zeros(grid.shape_kji, np.float32)
+    for side in ("left", "right"):
+        pts, radii = ica_segment(p.arteries, side, p.scale, petrous)
+        if len(pts) >= 2:
+            rasterise_tube(grid, pts, radii + CANAL_WALL_MM, canal)
+    _mix(hu, canal, hu_p["dense"])
+    del canal
 
-    # --- arteries and veins
+    # --- labels, veins, arteries (each lumen with its own HU along it), calcified plaques
     lab = cranium.astype(np.uint8) * np.uint8(L.CRANIUM)
-    vcov = np.zeros(grid.shape_kji, np.float32)
+    lab[cranium & (dura > 0.5)] = L.DURA
+    del dura
+    cov = np.zeros(grid.shape_kji, np.float32)
     vlab = np.zeros(grid.shape_kji, np.uint8)
+    for vein in p.veins:
+        rasterise_tube(grid, vein["points"], vein["radii"], cov, vlab, L.VENOUS_SINUS)
+    _mix(hu, cov, hu_p["venous"])
+    cov[:] = 0.0
+    value = np.zeros(grid.shape_kji, np.float32)
     for art in p.arteries:
-        rasterise_tube(grid, art["points"], art["radii"], vcov, vlab, art["label"])
-    venous = np.zeros(grid.shape_kji, np.float32)
-    sss = [(0, 80 * np.cos(a) - 5, 72 * np.sin(a)) for a in np.linspace(0.25 * np.pi, 1.35 * np.pi, 12)]
-    sss = np.asarray(sss) * (1.0 - p.skull_thickness_mm / 70.0)
-    rasterise_tube(grid, sss * p.scale, np.linspace(2.5, 4.5, len(sss)), venous)
-    _mix(hu, venous * (1.0 - vcov), hu_p["venous"])
-    _mix(hu, vcov, hu_p["vessel"])
+        rasterise_tube(grid, art["points"], art["radii"], cov, vlab, art["label"], values=value, point_values=art["hu"])
+    _mix(hu, cov, value)
+    if p.avm is not None:  # nidus at its feeder's HU, the drain between it and the sinuses
+        cov[:] = 0.0
+        nidus = np.zeros(grid.shape_kji, np.uint8)
+        feeder_hu = float(p.avm["feeder"]["hu"][-1])
+        for tube in p.avm["nidus"]:
+            rasterise_tube(grid, tube["points"], tube["radii"], cov, nidus, L.NIDUS)
+        _mix(hu, cov, feeder_hu)
+        cov[:] = 0.0
+        rasterise_tube(grid, p.avm["drain"]["points"], p.avm["drain"]["radii"], cov, nidus, L.NIDUS)
+        _mix(hu, cov, 0.5 * (feeder_hu + hu_p["venous"]))
+        lab[(nidus > 0) & cranium & (vlab == 0)] = L.NIDUS
+        del nidus
+    cov[:] = 0.0
+    value[:] = 0.0
+    for q in p.enhancement.plaques:
+        c = np.asarray(q["centre_mm"], float)
+        rasterise_tube(grid, np.stack([c, c]), np.full(2, q["radius_mm"]), cov, value, q["hu"], min_cover=0.0)
+    _mix(hu, cov, value)
     vessel = vlab > 0
     lab[vessel] = vlab[vessel] + np.where(cranium[vessel], L.INTRACRANIAL_OFFSET, 0).astype(np.uint8)
-    del vcov, vlab, venous
+    del cov, vlab, value
 
-    # --- calibration and noise (the noise field is tied to the grid, like a scanner's)
-    noise = np.random.default_rng(p.seed + 104729).standard_normal(grid.shape_kji, dtype=np.float32)
-    hu = hu * p.hu_gain + p.hu_offset + p.noise_sd_hu * noise
+    # --- calibration, correlated noise and streaks (tied to the grid, like a scanner's)
+    white = np.random.default_rng(p.seed + 104729).standard_normal(grid.shape_kji, dtype=np.float32)
+    hu = hu * p.hu_gain + p.hu_offset + p.noise_sd_hu * correlated_noise(white, p.enhancement.noise_neighbour_weight)
+    del white
+    add_streaks(hu, grid, p.scale, p.enhancement.streaks)
     return np.clip(np.rint(hu), -1024, 3071).astype(np.float32), lab

@@ -12,7 +12,8 @@ import SimpleITK as sitk
 
 from ..dsa import write_dsa_dicom
 from ..volume import Volume
-from .dsa import INJECTIONS, dsa_renderer, injected_arteries, sample_biplane, sample_injection, simulate_dsa
+from .avm import PATHOLOGIES
+from .dsa import DENSE_RUNS, INJECTIONS, RUNS, dsa_renderer, injected_arteries, opacified_labels, sample_biplane, sample_injection, simulate_dsa
 from .subject import make_subject
 from ..errors import InputError
 
@@ -33,11 +34,17 @@ def _write_volume(vol: Volume, path: Path, dtype) -> None:
     sitk.WriteImage(img, str(path), useCompression=True, compressionLevel=1)
 
 
-def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: str | None = None, max_matrix_px: int = 1024) -> dict:
-    """Generate subject ``seed`` and write the six files into ``out``; returns timings (s)."""
+def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: str | None = None, max_matrix_px: int = 1024,
+                  pathology: str | None = None) -> dict:
+    """Generate subject ``seed`` and write the six files into ``out``; returns timings (s).
+
+    ``injection``: one of ``dsa.RUNS`` (default: a routine catheter position drawn from the seed);
+    ``pathology``: ``"avm"`` draws the subject with an arteriovenous malformation (implied by the
+    ``"avm"`` run). ``truth.json`` records both, the AVM and the label values the runs fill."""
+    pathology = pathology or (DENSE_RUNS[injection].pathology if injection in DENSE_RUNS else None)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    subject = make_subject(seed, spacing_mm=spacing_mm)
+    subject = make_subject(seed, spacing_mm=spacing_mm, pathology=pathology)
     timings["volume_s"] = time.perf_counter() - t0
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng([seed, 1])
@@ -51,7 +58,8 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
     _write_volume(subject.cta, out / "cta.nii.gz", np.int16)
     _write_volume(subject.labels, out / "labels.nii.gz", np.uint8)
     lines = [
-        {"name": c["name"], "label": c["label"], "points_mm": np.round(c["points_mm"], 3).tolist(), "radii_mm": np.round(c["radii_mm"], 3).tolist()}
+        {"name": c["name"], "label": c["label"], "points_mm": np.round(c["points_mm"], 3).tolist(), "radii_mm": np.round(c["radii_mm"], 3).tolist(),
+         "lumen_hu": np.round(c["lumen_hu"]).tolist()}
         for c in subject.centerlines
     ]
     (out / "centerlines.json").write_text(json.dumps({"frame": "centred native (RAS axes, origin at the CTA voxel-grid centre), mm", "centerlines": lines}))
@@ -70,7 +78,9 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
             "pixel_spacing_mm": list(sim.run.detector.spacing_mm), "frames": acq.n_frames, "frame_time_ms": acq.frame_time_ms,
             "carotid_centerlines_px": {k: np.round(v, 2).tolist() for k, v in sim.carotids.items()},
         }
-    truth = subject.truth() | {"injection": injection, "isocentre_mm": iso.tolist(), "views": views}
+    early, late, venous = opacified_labels(injection)
+    truth = subject.truth() | {"injection": injection, "opacified_labels": {"early": early, "late": late, "venous": venous},
+                               "isocentre_mm": iso.tolist(), "views": views}
     (out / "truth.json").write_text(json.dumps(truth, indent=1))
     timings["write_s"] = time.perf_counter() - t2
     timings["total_s"] = time.perf_counter() - t0
@@ -87,7 +97,8 @@ def written_injected_arteries(folder: Path) -> np.ndarray:
 def _run(args: argparse.Namespace) -> int:
     if args.spacing_mm < 0.5:
         raise InputError(f"--spacing-mm must be at least 0.5 mm, got {args.spacing_mm}")
-    t = write_phantom(args.seed, Path(args.out), spacing_mm=args.spacing_mm, injection=args.injection, max_matrix_px=args.max_matrix_px)
+    t = write_phantom(args.seed, Path(args.out), spacing_mm=args.spacing_mm, injection=args.injection, max_matrix_px=args.max_matrix_px,
+                      pathology=args.pathology)
     print(f"phantom seed {args.seed} -> {args.out}: " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()))
     return 0
 
@@ -97,6 +108,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="subject seed (same seed, same files)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--spacing-mm", type=float, default=1.0, help="isotropic voxel size (mm, >= 0.5); 256 mm field of view")
-    p.add_argument("--injection", choices=sorted(INJECTIONS), default=None, help="catheter position (default: drawn from the seed)")
+    p.add_argument("--injection", choices=RUNS, default=None,
+                   help=f"catheter position ({', '.join(sorted(INJECTIONS))}; default: one drawn from the seed) or a densely "
+                   "opacified run: all_territories (every artery, both sides, strong contrast), avm (an AVM's nidus with early "
+                   "venous drainage; implies --pathology avm), late_venous (the sinuses filled with the arteries)")
+    p.add_argument("--pathology", choices=PATHOLOGIES, default=None,
+                   help="draw the subject with a pathology: avm (a nidus fed by an M2 branch, draining into the sagittal sinus)")
     p.add_argument("--max-matrix-px", type=int, default=1024, help="cap on the written DSA matrix (px); the field of view is kept")
     p.set_defaults(func=_run)

@@ -9,6 +9,10 @@ wave and a capillary blush), subtraction residue from small patient motion
 (per frame, a slightly moved total-density render minus the mask one), quantum noise
 whose level grows with the attenuation behind it (so a MAP shows a grainy
 cranium silhouette), detector blur, collimation and a burnt-in text annotation.
+Besides the routine catheter positions (``INJECTIONS``, the ones drawn by default),
+``DENSE_RUNS`` opacify much more of the head (every territory at high contrast, an
+AVM's nidus with early venous drainage, a late phase with the sinuses filled): runs
+whose MAP is a vessel blob, for testing what must survive dense opacification.
 The written matrix is capped at ``max_matrix_px`` (default 1024, 8-bit), which
 keeps a 26-frame run under 30 MB; the physical detector size is kept.
 """
@@ -34,7 +38,8 @@ from . import labels as L
 from .subject import Subject
 
 __all__ = [
-    "Acquisition", "ImagedHead", "SyntheticDSA", "INJECTIONS", "injected_arteries", "sample_acquisition", "sample_biplane",
+    "Acquisition", "ImagedHead", "SyntheticDSA", "INJECTIONS", "DENSE_RUNS", "DenseRun", "RUNS", "injected_arteries",
+    "opacified_labels", "sample_acquisition", "sample_biplane",
     "sample_injection",
     "table_tilt", "dsa_renderer", "simulate_dsa",
 ]
@@ -55,6 +60,39 @@ INJECTIONS = {
     "cca_right": (L.ICA_RIGHT, L.ANTERIOR_RIGHT, L.EXTERNAL_RIGHT),
     "arch": L.ARTERY_LABELS,
 }
+
+
+@dataclass(frozen=True)
+class DenseRun:
+    """A densely opacified run: the artery labels filled as a routine run fills them, plus
+    ``early`` (non-arterial labels filled with the arterial wave) and ``venous`` (labels filled by
+    a venous wave peaking ``venous_delay`` bolus widths after the arterial peak, its contrast diluted
+    to ``venous_share`` of the arteries'); the vessels' contrast is ``gain`` times a routine run's, the
+    capillary blush ``blush_gain`` times, the bolus ``width_factor`` times longer. ``pathology``: what
+    the subject must have been drawn with (``make_subject(..., pathology=...)``), if anything."""
+
+    arteries: tuple[int, ...]
+    early: tuple[int, ...] = ()
+    venous: tuple[int, ...] = ()
+    venous_delay: float = 1.0
+    venous_share: float = 0.35
+    gain: float = 1.0
+    blush_gain: float = 1.0
+    width_factor: float = 1.0
+    pathology: str | None = None
+
+
+#: Dense runs by name: every territory at high contrast; an AVM (arch injection: the nidus with
+#: the arteries, its drain and the sinuses early); a late phase (arteries with the sinuses filled).
+DENSE_RUNS = {
+    "all_territories": DenseRun(L.ARTERY_LABELS, gain=2.0, blush_gain=5.0, width_factor=1.5),
+    "avm": DenseRun(L.ARTERY_LABELS, early=(L.NIDUS,), venous=tuple(L.with_intracranial([L.VENOUS_SINUS])), venous_delay=0.4,
+                    gain=1.5, blush_gain=3.0, width_factor=1.3, pathology="avm"),
+    "late_venous": DenseRun(L.ARTERY_LABELS, venous=tuple(L.with_intracranial([L.VENOUS_SINUS])), venous_delay=1.2, gain=1.3,
+                            blush_gain=3.0, width_factor=1.6),
+}
+#: Every run ``simulate_dsa`` knows: the routine injections, then the dense runs.
+RUNS = tuple(sorted(INJECTIONS)) + tuple(sorted(DENSE_RUNS))
 #: Peak log-attenuation of the thickest head path; sets the noise contrast inside vs outside.
 HEAD_ATTENUATION = 4.0
 STORED_MAX = 255
@@ -122,7 +160,7 @@ def sample_acquisition(rng: np.random.Generator, view_role: str) -> Acquisition:
 
 
 def sample_injection(rng: np.random.Generator) -> str:
-    """A catheter position (a key of ``INJECTIONS``), uniformly."""
+    """A catheter position (a key of ``INJECTIONS``, never a dense run), uniformly."""
     return str(rng.choice(sorted(INJECTIONS)))
 
 
@@ -158,22 +196,37 @@ class SyntheticDSA:
     injection: str
 
 
+def opacified_labels(injection: str) -> tuple[list[int], list[int], list[int]]:
+    """Label values (``labels.py``) ``injection`` (one of ``RUNS``) fills: ``early`` (the arteries up to
+    the circle of Willis, and a dense run's ``early``), ``late`` (the intracranial arteries beyond)
+    and ``venous`` (a dense run's venous wave; empty for a routine run)."""
+    if injection not in RUNS:
+        raise ValueError(f"unknown injection {injection!r}; choose one of {list(RUNS)}")
+    dense = DENSE_RUNS.get(injection)
+    opac = dense.arteries if dense else INJECTIONS[injection]
+    early = list(opac) + [v + L.INTRACRANIAL_OFFSET for v in opac if v in (L.ICA_LEFT, L.ICA_RIGHT)]
+    late = [v + L.INTRACRANIAL_OFFSET for v in opac if v not in (L.ICA_LEFT, L.ICA_RIGHT)]
+    if dense is None:
+        return early, late, []
+    return early + list(dense.early), late, list(dense.venous)
+
+
 def injected_arteries(labels: np.ndarray, injection: str) -> np.ndarray:
-    """Bool mask of the artery labels (``labels.py``, intracranial parts included) ``injection`` fills."""
-    if injection not in INJECTIONS:
-        raise ValueError(f"unknown injection {injection!r}; choose one of {sorted(INJECTIONS)}")
-    return np.isin(labels, L.with_intracranial(INJECTIONS[injection]))
+    """Bool mask of what ``injection`` fills (``opacified_labels``): the artery labels (``labels.py``,
+    intracranial parts included) and, for a dense run, the nidus and the sinuses too."""
+    return np.isin(labels, [v for group in opacified_labels(injection) for v in group])
 
 
 def dsa_renderer(subject: Subject, injection: str, render_px: int = 256) -> DRR:
-    """The DRR of ``subject`` with channels total, cranium, early and late arteries
-    opacified by ``injection`` (a key of ``INJECTIONS``)."""
-    if injection not in INJECTIONS:
-        raise ValueError(f"unknown injection {injection!r}; choose one of {sorted(INJECTIONS)}")
-    opac = INJECTIONS[injection]
-    early = list(opac) + [v + L.INTRACRANIAL_OFFSET for v in opac if v in (L.ICA_LEFT, L.ICA_RIGHT)]
-    late = [v + L.INTRACRANIAL_OFFSET for v in opac if v not in (L.ICA_LEFT, L.ICA_RIGHT)]
+    """The DRR of ``subject`` with channels total, cranium, early and late arteries opacified by
+    ``injection`` (one of ``RUNS``), and for a dense run a fifth, the venous wave's labels."""
+    early, late, venous = opacified_labels(injection)
+    dense = DENSE_RUNS.get(injection)
+    if dense is not None and dense.pathology is not None and not np.any(np.isin(subject.labels.array, list(dense.early))):
+        raise ValueError(f"the {injection!r} run needs a subject drawn with pathology={dense.pathology!r}")
     groups = {"cranium": L.label_groups()["cranium"], "early": early, "late": late}
+    if dense is not None:
+        groups["venous"] = venous
     det = Detector.model().resized(render_px)
     step = max(RENDER_STEP_MM, min(subject.cta.spacing_mm))
     return DRR.from_volume(subject.cta, det, subject.labels, groups, step_mm=step)
@@ -244,8 +297,9 @@ def simulate_dsa(
 ) -> SyntheticDSA:
     """Simulate one DSA run of ``subject`` seen from ``pose`` (camera-to-world, centred
     native frame) with the intrinsics and timing of ``acquisition``. Given ``drr``
-    (channels total, cranium, early, late), ``subject`` may be any :class:`ImagedHead`,
-    e.g. a real CT whose artery channels are empty (a contrast-free run)."""
+    (channels total, cranium, early, late, and venous for a dense run), ``subject`` may be
+    any :class:`ImagedHead`, e.g. a real CT whose artery channels are empty (a contrast-free run).
+    A dense run (``DENSE_RUNS``) scales the contrast and the bolus width and adds a venous wave."""
     det_full = acquisition.detector
     det_out = det_full if max(det_full.shape) <= max_matrix_px else det_full.resized(max_matrix_px)
     det_r = det_full.resized(render_px)
@@ -255,12 +309,14 @@ def simulate_dsa(
         raise ValueError(f"a DSA run needs at least one frame, got {T}")
 
     p0 = pose.matrix.double()
+    dense = DENSE_RUNS.get(injection)
     with torch.no_grad():
-        tot0, cran, early, late = drr(RigidTransform(p0.float()), det_r)[0].double()  # total, cranium, early, late
+        channels = drr(RigidTransform(p0.float()), det_r)[0].double()  # total, cranium, early, late[, venous]
+    tot0, cran, early, late = channels[:4]
     k_att = HEAD_ATTENUATION / max(float(torch.quantile(tot0.flatten(), 0.995)), 1e-6)
     times = np.arange(T, dtype=float)
     t_peak = rng.uniform(0.15, 0.35) * max(T - 1, 1)
-    width = max(1.0, rng.uniform(0.12, 0.25) * T)
+    width = max(1.0, rng.uniform(0.12, 0.25) * T) * (dense.width_factor if dense else 1.0)
     a_early = _gamma_variate(times, t_peak - width, width)
     a_late = _gamma_variate(times, t_peak - 0.6 * width, width)
     capillary = _gamma_variate(times, t_peak + 0.3 * width, 1.8 * width)
@@ -274,8 +330,17 @@ def simulate_dsa(
     vessel_gain = rng.uniform(0.8, 1.2) * k_att * 3.0
     blush = rng.uniform(0.02, 0.06) * k_att
     residue_gain = rng.uniform(0.6, 1.4) * k_att
+    venous = torch.zeros_like(early)
+    a_venous = np.zeros(T)
+    if dense is not None:
+        vessel_gain *= dense.gain
+        blush *= dense.blush_gain
+        if len(channels) > 4:
+            venous = dense.venous_share * channels[4]
+        # a wider wave peaking venous_delay bolus widths after the arterial peak
+        a_venous = _gamma_variate(times, t_peak + (dense.venous_delay - 1.5) * width, 1.5 * width)
     base = torch.stack([
-        vessel_gain * (float(a_early[t]) * early + float(a_late[t]) * late)
+        vessel_gain * (float(a_early[t]) * early + float(a_late[t]) * late + float(a_venous[t]) * venous)
         + blush * float(capillary[t]) * cran
         + residue_gain * residue[t]
         for t in range(T)

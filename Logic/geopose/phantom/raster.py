@@ -64,14 +64,17 @@ class Grid:
         return (slice(a[2], b[2]), slice(a[1], b[1]), slice(a[0], b[0]))
 
 
-def resample_polyline(points: np.ndarray, radii: np.ndarray, step_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points ``(N, 3)`` and radii re-sampled at about ``step_mm`` along the arc length."""
+def resample_polyline(points: np.ndarray, per_point: np.ndarray, step_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``(N, 3)`` and per-point values ``(N,)`` or ``(N, M)`` (radii, HU) re-sampled at
+    about ``step_mm`` along the arc length (values linearly interpolated)."""
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     s = np.concatenate(([0.0], np.cumsum(seg)))
     n = max(2, int(np.ceil(s[-1] / step_mm)) + 1)
     t = np.linspace(0.0, s[-1], n)
     pts = np.stack([np.interp(t, s, points[:, a]) for a in range(3)], axis=1)
-    return pts, np.interp(t, s, radii)
+    cols = per_point.reshape(len(points), -1)
+    out = np.stack([np.interp(t, s, cols[:, a]) for a in range(cols.shape[1])], axis=1)
+    return pts, out.reshape((n,) + per_point.shape[1:])
 
 
 def rasterise_tube(
@@ -82,19 +85,24 @@ def rasterise_tube(
     labels: np.ndarray | None = None,
     label: float = 0,
     min_cover: float = 0.5,
+    values: np.ndarray | None = None,
+    point_values: np.ndarray | None = None,
 ) -> None:
     """Add a tube (polyline ``(N, 3)`` head mm, radius per point mm) to ``coverage`` in place.
 
     Coverage is a partial-volume fraction in [0, 1] combined by maximum; where the
     tube covers more than ``min_cover`` of a voxel and more than before, ``labels``
-    (a label map, or a value map) gets ``label``.
-    Only the bounding box of each segment is touched.
+    (a label map, or a value map) gets ``label``. Where it covers more than before
+    (any share), ``values`` (a value map) gets ``point_values`` (one per point, e.g.
+    HU), interpolated along the tube. Only the bounding box of each segment is touched.
     """
     X, Y, Z = grid.coords
     h = grid.voxel_mm
-    step = float(np.clip(2.0 * radii.max(), 1.5, 6.0))
-    pts, rad = resample_polyline(np.asarray(points, float), np.asarray(radii, float), step)
-    for a, b, ra, rb in zip(pts[:-1], pts[1:], rad[:-1], rad[1:]):
+    step = float(np.clip(2.0 * np.max(radii), 1.5, 6.0))
+    per_point = np.column_stack([radii, np.zeros(len(radii)) if point_values is None else point_values]).astype(float)
+    pts, cols = resample_polyline(np.asarray(points, float), per_point, step)
+    rad, val = cols[:, 0], cols[:, 1]
+    for a, b, ra, rb, va, vb in zip(pts[:-1], pts[1:], rad[:-1], rad[1:], val[:-1], val[1:]):
         pad = max(ra, rb) + h
         sl = grid.box(np.minimum(a, b) - pad, np.maximum(a, b) + pad)
         if sl is None:
@@ -107,9 +115,13 @@ def rasterise_tube(
         r = ra + t * (rb - ra)
         cov = np.clip((r - dist) / h + 0.5, 0.0, 1.0) * np.minimum(1.0, 2.0 * r / h)
         cur = coverage[sl]
+        more = cov > cur
         if labels is not None:
             lab = labels[sl]
-            lab[(cov > min_cover) & (cov > cur)] = label
+            lab[(cov > min_cover) & more] = label
+        if values is not None:
+            v = values[sl]
+            v[more] = (va + t * (vb - va))[more]
         np.maximum(cur, cov, out=cur)
 
 

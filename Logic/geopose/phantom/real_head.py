@@ -5,8 +5,8 @@ The tree is the one :func:`~geopose.phantom.vessels.build_arteries` draws for ph
 the phantom's cranial cavity and the CT's puts the intracranial arteries in the CT's cranial
 cavity; below the skull base a shift fitted on the cervical spine moves the neck's arteries onto
 the CT's neck (the phantom's neck is not the CT's); what falls outside the CT's field of view is
-clipped. Arterial voxels are blended towards the subject's own arterial HU by their
-partial-volume coverage, as ``anatomy.rasterise_head`` does.
+clipped. Arterial voxels are blended towards the subject's own lumen HU (falling along the tree,
+``contrast.lumen_hu``) by their partial-volume coverage, as ``anatomy.rasterise_head`` does.
 
 Frames (mm, RAS axes): the phantom's *head* frame (``anatomy``) and the CT's *centred* frame
 (origin at the voxel-grid centre, docs/conventions.md section 1).
@@ -290,7 +290,7 @@ def _clipped(artery: dict, points: np.ndarray, radii: np.ndarray, keep: np.ndarr
 def with_arteries(cta: Volume, seed: int, *, cranium: Volume | None = None) -> tuple[Volume, Volume, list[dict]]:
     """``cta`` (a head CT in HU without contrast; left unchanged) with the arteries of phantom ``seed``
     (:func:`fit_head`): the CTA (HU, float32; every voxel the arteries do not cover keeps its value, covered
-    ones are raised towards the subject's arterial HU, never lowered), its label map (uint8, ``labels``:
+    ones are raised towards the subject's lumen HU along each artery, never lowered), its label map (uint8, ``labels``:
     ``CRANIUM`` where ``cranium`` is, default :func:`~geopose.cta.cranium_mask_from_cta`; artery labels,
     plus ``INTRACRANIAL_OFFSET`` inside it) and the artery centrelines in the CT's centred frame
     (``Subject.centerlines``' keys; clipped to the measured field of view). Arteries are painted only
@@ -302,23 +302,25 @@ def with_arteries(cta: Volume, seed: int, *, cranium: Volume | None = None) -> t
     grid = Grid(cta.array.shape, cta.ijk_to_centred)
     cover = np.zeros(cta.array.shape, np.float32)
     artery = np.zeros(cta.array.shape, np.uint8)
+    lumen = np.zeros(cta.array.shape, np.float32)
     measured = cta.array >= UNSCANNED_BELOW_HU
     lines: list[dict] = []
     for a in params.arteries:
         points, radii = fit.to_centred(a["points"]), np.asarray(a["radii"], float) * radius_scale
-        rasterise_tube(grid, points, radii, cover, artery, a["label"])
+        rasterise_tube(grid, points, radii, cover, artery, a["label"], values=lumen, point_values=a["hu"])
         lines += _clipped(a, points, radii, _in_view(cta, measured, points))
     air = cta.array <= C.HU_AIR_MAX
     cover[air] = 0.0
     artery[air] = 0
     hu = cta.array.astype(np.float32)
-    vessel_hu = np.float32(params.hu["vessel"])
-    hu = np.maximum(hu, hu + cover * (vessel_hu - hu))
+    hu = np.maximum(hu, hu + cover * (lumen - hu))
     inside = cranium.array > 0
     lab = inside.astype(np.uint8) * np.uint8(L.CRANIUM)
     vessel = artery > 0
     lab[vessel] = artery[vessel] + np.where(inside[vessel], L.INTRACRANIAL_OFFSET, 0).astype(np.uint8)
-    record = {"phantom_seed": int(seed), **fit.record, "vessel_hu": float(vessel_hu)}
+    lumen_hu = np.concatenate([a["hu"] for a in params.arteries])
+    record = {"phantom_seed": int(seed), **fit.record, "vessel_hu": float(params.hu["vessel"]),
+              "lumen_hu_range": [float(lumen_hu.min()), float(lumen_hu.max())]}
     return (Volume(hu, cta.ijk_to_ras.copy(), {**cta.metadata, "arteries": record}),
             cta.like(lab, kind="labels", arteries=record), lines)
 

@@ -65,7 +65,8 @@ def _centred_grid(shape_ijk, spacing) -> np.ndarray:
 @dataclass
 class Subject:
     """One phantom subject. ``cta`` (HU) and ``labels`` (uint8, see ``labels``) share the
-    native grid; ``centerlines`` are in the centred native frame (mm)."""
+    native grid; ``centerlines`` (arteries: ``name``, ``label``, ``points_mm``, ``radii_mm``,
+    ``lumen_hu``) are in the centred native frame (mm)."""
 
     seed: int
     params: HeadParams
@@ -123,6 +124,15 @@ class Subject:
             "circle_of_willis": dict(self.params.cow),
             "hu": dict(self.params.hu),
             "noise_sd_hu": self.params.noise_sd_hu,
+            "lumen_hu_range": [float(min(a["hu"].min() for a in self.params.arteries)),
+                               float(max(a["hu"].max() for a in self.params.arteries))],
+            "enhancement": self.params.enhancement.record,
+            "pathology": None if self.params.avm is None else "avm",
+            "avm": None if self.params.avm is None else {
+                "side": self.params.avm["side"], "radius_mm": self.params.avm["radius_mm"],
+                "centre_native_mm": (self.head_to_native @ np.append(self.params.avm["centre_mm"], 1.0))[:3].tolist()},
+            "enhancement_doc": "appearance draws (contrast.Enhancement): plaque centres in the head frame (mm, "
+            "docs/phantoms.md), HU",
         }
 
 
@@ -133,16 +143,18 @@ def make_subject(
     shape: tuple[int, int, int] | None = None,
     max_rotation_deg: float = 15.0,
     random_grid: bool = False,
+    pathology: str | None = None,
 ) -> Subject:
     """Generate phantom subject ``seed`` (same seed -> identical arrays).
 
     ``spacing_mm``: voxel size (i, j, k) in mm, a number for isotropic voxels
     (0.5 mm and up). ``shape``: (i, j, k) voxel counts, default a 256 mm field of
     view. ``random_grid`` draws the field of view, neck coverage and an
-    anisotropic spacing (thick slices) like a clinical CTA instead.
+    anisotropic spacing (thick slices) like a clinical CTA instead. ``pathology``: ``"avm"``
+    adds an arteriovenous malformation (``avm``; everything else stays as without it).
     """
     rng = np.random.default_rng(seed)
-    params = sample_head(rng, seed)
+    params = sample_head(rng, seed, pathology)
     sp = np.broadcast_to(np.asarray(spacing_mm, float), (3,)).copy()
     if random_grid:
         inplane = rng.uniform(0.6, 1.0)
@@ -182,5 +194,6 @@ def make_subject(
     centerlines = []
     for a in params.arteries:
         pts = a["points"] @ native_from_head[:3, :3].T + native_from_head[:3, 3]
-        centerlines.append({"name": a["name"], "label": int(a["label"]), "points_mm": pts, "radii_mm": np.asarray(a["radii"], float)})
+        centerlines.append({"name": a["name"], "label": int(a["label"]), "points_mm": pts, "radii_mm": np.asarray(a["radii"], float),
+                            "lumen_hu": np.asarray(a["hu"], float)})
     return Subject(seed, params, cta, labels, centerlines, native_to_canonical)

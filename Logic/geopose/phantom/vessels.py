@@ -15,7 +15,7 @@ import numpy as np
 
 from . import labels as L
 
-__all__ = ["build_arteries", "catmull_rom"]
+__all__ = ["build_arteries", "catmull_rom", "path_length_mm"]
 
 #: Point spacing (mm) of the output centerlines.
 CENTERLINE_STEP_MM = 1.0
@@ -170,3 +170,39 @@ def _cortical_branch(out, rng, margin, name, label, start, r0, depth) -> None:
         for _ in range(int(rng.integers(1, 3))):
             s = pts[int(rng.uniform(0.3, 0.9) * (len(pts) - 1))]
             _cortical_branch(out, rng, margin, name, label, s, 0.55 * r0 + 0.2, depth - 1)
+
+
+#: Arteries whose first point is a root of the tree (they enter the field from the chest).
+ROOT_PREFIXES = ("cca_", "vertebral_")
+#: A branch joins the artery whose nearest point lies within this distance (mm) of its first point.
+JOIN_MM = 4.0
+
+
+def path_length_mm(arteries: list[dict]) -> list[np.ndarray]:
+    """Per artery, the distance (mm) of each point from the neck along the tree: the roots
+    (``ROOT_PREFIXES``) start at 0, every other artery at the path length of the point it
+    branches from (the nearest point of a reached artery within ``JOIN_MM``; else, like an
+    anastomosis whose parent is far, the farthest point reached so far)."""
+    arcs = [np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(a["points"], axis=0), axis=1)))) for a in arteries]
+    points = np.concatenate([a["points"] for a in arteries])
+    offsets = np.cumsum([0] + [len(a["points"]) for a in arteries])
+    firsts = np.stack([a["points"][0] for a in arteries])
+    gaps = np.linalg.norm(firsts[:, None, :] - points[None, :, :], axis=2)  # (arteries, all points)
+    # per artery n and candidate parent m: the nearest point of m to n's first point, and its path offset
+    links: list[list[tuple[int, float]]] = [[] for _ in arteries]
+    for n in range(len(arteries)):
+        for m in np.flatnonzero(np.minimum.reduceat(gaps[n], offsets[:-1]) <= JOIN_MM):
+            if m != n:
+                k = int(np.argmin(gaps[n, offsets[m]:offsets[m + 1]]))
+                links[n].append((int(m), arcs[m][k] + gaps[n, offsets[m] + k]))
+    start = np.array([0.0 if a["name"].startswith(ROOT_PREFIXES) else np.inf for a in arteries])
+    for _ in range(len(arteries)):  # shortest paths from the roots (Bellman-Ford over the links)
+        before = start.copy()
+        for n, parents in enumerate(links):
+            for m, along in parents:
+                start[n] = min(start[n], start[m] + along)
+        if np.array_equal(before, start):
+            break
+    finite = np.isfinite(start)
+    reached = max((s + arc[-1] for s, arc, ok in zip(start, arcs, finite) if ok), default=0.0)
+    return [(s if ok else reached) + arc for s, arc, ok in zip(start, arcs, finite)]
