@@ -43,4 +43,25 @@ def test_dsa_cranium_mask_matches_projected_cranium(subject):
     for acq in acqs:
         sim = simulate_dsa(subject, acq, acq.pose(iso), rng, injection="cca_left", drr=drr, max_matrix_px=256)
         mask = dsa_cranium_mask(temporal_map(sim.run.attenuation()))
-        assert _dice(mask, sim.cranium_mask) > 0.8, acq.view_role
+        assert _dice(mask, sim.cranium_mask) > 0.9, acq.view_role  # 0.96 / 0.95 measured (PA / LAT)
+
+
+def test_dsa_cranium_mask_survives_dense_opacification(subject):
+    """Every artery opacified with five times the phantom world's contrast (an AVM, a late arterial phase):
+    the vessels take the top of the run's 8-bit range and the head's noise-drawn level a few grey levels.
+    Otsu on the MAP alone then masked the vessel tree (Dice 0.03-0.05 with the truth on the benchmark's
+    dense phantoms, docs/cranium_masks.md); the mask must still be the head."""
+    rng = np.random.default_rng(4)
+    arch = dsa_renderer(subject, "arch")
+
+    def dense(pose, detector):
+        out = arch(pose, detector).clone()
+        out[:, 2:] *= 5.0  # channels total, cranium, early and late arteries
+        return out
+
+    acqs, iso = sample_biplane(rng, subject)
+    for acq in acqs:
+        sim = simulate_dsa(subject, acq, acq.pose(iso), rng, injection="arch", drr=dense, max_matrix_px=256)
+        image = temporal_map(sim.run.attenuation())
+        dice = _dice(dsa_cranium_mask(image), sim.cranium_mask)
+        assert dice > 0.88, (acq.view_role, dice)  # 0.95 / 0.93 measured (PA / LAT)
