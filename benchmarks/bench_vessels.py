@@ -1,6 +1,5 @@
-"""The experimental CTA artery mask (``geopose.cta.vessels.artery_mask_from_cta``; ``--baseline``: the
-default approximate ``vessel_mask_from_cta``) against phantom truth, per vessel
-group: voxel precision and recall, and centreline recall (the share of truth centreline points
+"""The CTA vessel mask ``geopose register`` computes (``geopose.cta.vessel_mask_from_cta``) against phantom
+truth, per vessel group: voxel precision and recall, and centreline recall (the share of truth centreline points
 within their radius, at least one voxel, of the mask); on held-out phantoms, on the real head CTs
 made CTAs with a phantom's arteries, and on the plain real heads (no contrast: the mask should be
 empty). Times each mask (wall s, the CPUs this process may use).
@@ -22,8 +21,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from geopose.bench.cases import seed_range
-from geopose.cta import cranium_mask_from_cta, vessel_mask_from_cta
-from geopose.cta.vessels import artery_mask_from_cta
+from geopose.cta import vessel_mask_from_cta
 from geopose.phantom import labels as L
 from geopose.phantom import make_subject
 from geopose.phantom.real_head import load_headsq, with_arteries
@@ -88,15 +86,10 @@ def score(mask: np.ndarray, labels: Volume, centerlines: list[dict]) -> dict:
     return out
 
 
-#: The mask scored: the experimental artery segmentation, or (``--baseline``) the default approximate mask.
-MASKS = {"artery": artery_mask_from_cta, "baseline": lambda cta: vessel_mask_from_cta(cta, cranium_mask_from_cta(cta))}
-MASK = "artery"
-
-
 def timed_mask(cta: Volume) -> tuple[np.ndarray, dict, float]:
-    """The :data:`MASK` of ``cta`` (bool), its metadata (``contrast``: a tree was found) and its wall time (s)."""
+    """The vessel mask of ``cta`` (bool), its metadata (``contrast``: a tree was found) and its wall time (s)."""
     t0 = time.perf_counter()
-    result = MASKS[MASK](cta)
+    result = vessel_mask_from_cta(cta)
     return result.array > 0, {"contrast": bool(result.metadata.get("contrast", result.array.any()))}, time.perf_counter() - t0
 
 
@@ -187,10 +180,7 @@ def main() -> int:
     p.add_argument("--real-seeds", default="0-2", help="phantom seeds whose arteries the real heads get")
     p.add_argument("--doc", help="write the markdown table here")
     p.add_argument("--json", help="write the rows here")
-    p.add_argument("--baseline", action="store_true", help="score the default approximate mask (masks.vessel_mask_from_cta)")
     args = p.parse_args()
-    global MASK
-    MASK = "baseline" if args.baseline else "artery"
     rows = phantom_rows(seed_range(args.seeds), args.spacing) if args.seeds else []
     if args.fine_seeds:
         rows += phantom_rows(seed_range(args.fine_seeds), 1.0)

@@ -116,15 +116,18 @@ def test_headsq_masks(headsq: Volume):
     # hardly anything outside the head outline (a few voxels where the ear canals and
     # mouth open the outline of an axial slice)
     assert cranium.array[~_filled_head(headsq)].sum() < 0.002 * cranium.array.sum()
-    vessels = vessel_mask_from_cta(headsq, cranium)
-    assert np.all(cranium.array[vessels.array > 0] == 1)
-    assert vessels.array.mean() < 0.01  # non-contrast CT: only a few partial-volume false positives
+    vessels = vessel_mask_from_cta(headsq)
+    # a CT without contrast: the partial-volume bone in the lumen HU range spans 57 mm at most, no vessel
+    # tree, so the mask is empty and says why (the registration then runs without the vessel term)
+    assert not vessels.array.any()
+    assert vessels.metadata["contrast"] is False
+    assert "no contrast-filled vessel tree" in vessels.metadata["method"]
 
 
 # ------------------------------------------------------------- synthetic skull / vessels
 
 
-def test_masks_on_synthetic_skull_with_vessel():
+def test_masks_on_synthetic_skull_with_vessel(monkeypatch):
     spacing = 1.0
     n = 96
     z, y, x = np.mgrid[:n, :n, :n].astype(float)
@@ -133,7 +136,7 @@ def test_masks_on_synthetic_skull_with_vessel():
     a = np.full((n, n, n), -1000.0, np.float32)
     a[r < 40] = 1000  # skull shell 34..40 mm
     a[r < 34] = 35  # brain
-    tube = (np.hypot(y - c, x - (c + 10)) < 2.0) & (r < 30)  # a contrast-filled vessel
+    tube = (np.hypot(y - c, x - (c + 10)) < 2.0) & (r < 30)  # a contrast-filled vessel spanning 58 mm
     a[tube] = 400
     a[(r > 33) & (r < 34)] = 500  # partial-volume rim of the skull in the vessel HU range
     vol = Volume(a, np.diag([spacing, spacing, spacing, 1.0]))
@@ -141,13 +144,15 @@ def test_masks_on_synthetic_skull_with_vessel():
     inside = r < 40
     iou = (cranium & inside).sum() / (cranium | inside).sum()
     assert iou > 0.95
-    vessels = vessel_mask_from_cta(vol, vol.like(cranium.astype(np.uint8))).array.astype(bool)
+    with monkeypatch.context() as m:
+        m.setattr(masks, "CONTRAST_SPAN_MM", 50.0)  # the synthetic head is smaller than a real one
+        vessels = vessel_mask_from_cta(vol).array.astype(bool)
     assert (vessels & tube).sum() / tube.sum() > 0.8  # most of the vessel found
     assert vessels[(r > 33) & (r < 34)].sum() == 0  # skull rim excluded
     assert (vessels & ~tube).sum() < 0.05 * tube.sum()
 
 
-def test_vessel_mask_of_a_fine_grid_is_found_on_the_working_grid():
+def test_vessel_mask_of_a_fine_grid_is_found_on_the_working_grid(monkeypatch):
     """At 0.5 mm the vessel mask is computed on 1 mm blocks and mapped back: contrast voxels closer to
     dense bone than BONE_MARGIN_MM less one working voxel are dropped, those farther than it plus
     one are kept, and the record says which grid."""
@@ -155,13 +160,33 @@ def test_vessel_mask_of_a_fine_grid_is_found_on_the_working_grid():
     a = np.full((24, 48, 80), 300.0, np.float32)  # contrast everywhere ...
     a[:, :, :20] = 1000.0  # ... beside a bone slab (x < 10 mm)
     vol = Volume(a, np.diag([spacing, spacing, spacing, 1.0]))
-    result = vessel_mask_from_cta(vol, vol.like(np.ones(a.shape, np.uint8)))
+    monkeypatch.setattr(masks, "CONTRAST_SPAN_MM", 10.0)  # the block is 12 mm tall
+    result = vessel_mask_from_cta(vol)
     assert result.metadata["method"].endswith("on a 1 mm working grid")
     vessels = result.array
     distance_mm = (np.arange(80) - 19) * spacing  # from the slab's last voxel, along x
     tolerance = masks.VESSEL_WORK_SPACING_MM
     assert not vessels[:, :, distance_mm <= masks.BONE_MARGIN_MM - tolerance].any()
     assert vessels[:, :, distance_mm > masks.BONE_MARGIN_MM + tolerance].all()
+
+
+def test_vessel_mask_leaves_out_the_marrow_dense_bone_rings():
+    """A vertical bone tube (cortex 1200 HU, marrow core of lumen HU 500, radius 6 mm) beside a contrast-filled
+    tube (300 HU, radius 3 mm) in soft tissue, 1 mm voxels, 120 mm tall: the core is bone, the lumen is vessel."""
+    n_k, n = 120, 64
+    k, j, i = np.mgrid[:n_k, :n, :n].astype(float)
+    a = np.full((n_k, n, n), 40.0, np.float32)
+    r_bone = np.hypot(j - 32, i - 20)
+    a[r_bone <= 8.0] = 1200.0
+    core = r_bone <= 6.0
+    a[core] = 500.0
+    lumen = np.hypot(j - 32, i - 46) <= 3.0
+    a[lumen] = 300.0
+    result = vessel_mask_from_cta(Volume(a, np.eye(4)))
+    vessels = result.array > 0
+    assert result.metadata["contrast"] is True
+    assert not (vessels & core).any()
+    assert (vessels & lumen).sum() / lumen.sum() > 0.95
 
 
 def test_cranium_mask_needs_bone():

@@ -31,13 +31,18 @@ def test_cta_cranium_and_vessel_masks_match_phantom_truth(subject):
     # spine and the facial bones): the mask describes the skull and its contents, as the DSA mask does
     assert _dice(cranium, truth) > 0.94
     assert 0.97 < cranium.sum() / truth.sum() < 1.1
-    vessels = vessel_mask_from_cta(subject.cta, subject.cta.like(cranium.astype(np.uint8))).array > 0
-    true_vessels = L.vessel_mask(subject.labels.array) & truth
-    # An approximation (documented as such): it finds a good share of the intracranial
-    # arteries; its precision is low on phantoms (about 6 % on seed 21: venous sinuses,
-    # diploe and facial bone share the 150-700 HU band), which is why a given
-    # segmentation is preferred and the record says which one was used.
-    assert (vessels & true_vessels).sum() / true_vessels.sum() > 0.3
+    result = vessel_mask_from_cta(subject.cta)
+    vessels = result.array > 0
+    assert result.metadata["contrast"] is True
+    arteries = L.vessel_mask(subject.labels.array)
+    neck = arteries & ~truth
+    # An approximation (documented as such): it finds most arteries inside the cranium and in the neck
+    # (the common, internal and external carotids and the vertebrals every run shows); seed 21 measured
+    # 0.73 / 0.73, the mask before this one 0.73 / 0.02 (cranium only). Its precision stays low (venous
+    # sinuses and facial bone plates share the 150-700 HU band), which is why a given segmentation is
+    # preferred and the record says which one was used.
+    assert (vessels & arteries & truth).sum() / (arteries & truth).sum() > 0.65
+    assert (vessels & neck).sum() / neck.sum() > 0.5
 
 
 def test_cta_cranium_mask_of_a_real_scan_that_ends_in_the_vault(shared_data):

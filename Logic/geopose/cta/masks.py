@@ -14,7 +14,7 @@ from ..volume import Volume
 from .io import sitk_from_volume
 from ..errors import InputError
 
-__all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU", "DETACH_RADIUS_MM"]
+__all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU", "DETACH_RADIUS_MM", "MARROW_MAX_MM2", "BODY_HU", "CONTRAST_SPAN_MM"]
 
 #: Radius (mm) of the closing that seals sutures, foramina and thin bone before filling.
 CLOSING_RADIUS_MM = 7.0
@@ -25,8 +25,17 @@ DETACH_RADIUS_MM = 20.0
 WORK_SPACING_MM = 2.0
 #: Contrast-filled lumen range (HU) accepted as vessel by the approximate vessel mask.
 VESSEL_HU_RANGE = (150.0, 700.0)
-#: Dense bone (HU): voxels within :data:`BONE_MARGIN_MM` of it are not vessel (partial-volume rim).
+#: Dense bone (HU): voxels within :data:`BONE_MARGIN_MM` of it (or of the marrow it rings) are not vessel
+#: (partial-volume rim).
 DENSE_BONE_HU = 700.0
+#: Largest marrow cross-section (mm^2, a hole of dense bone in an axial slice) counted as bone: a vertebral
+#: body's core (about 130 mm^2) is, the cranial cavity is not.
+MARROW_MAX_MM2 = 400.0
+#: The body (head and neck) is HU above this (air is about -1000 HU, fat -100).
+BODY_HU = -400.0
+#: A contrast-filled vessel tree spans at least this along the superior axis (mm); the largest candidate
+#: of a CT without contrast (partial-volume bone) spans less (headsq: 57 mm, with arteries 140 mm).
+CONTRAST_SPAN_MM = 100.0
 BONE_MARGIN_MM = 2.5
 #: The vessel mask is computed on a grid no finer than this (mm; HU block-averaged, the cranium
 #: mask by majority), then mapped back by nearest neighbour: at 0.5 mm it costs 8 s on 2 cores.
@@ -128,40 +137,69 @@ def _detach(solid: sitk.Image, radius_vox: list[int]) -> sitk.Image:
     return sitk.And(sitk.BinaryDilate(core, radius_vox, sitk.sitkBall), solid)
 
 
-def vessel_mask_from_cta(volume: Volume, cranium: Volume) -> Volume:
-    """APPROXIMATE contrast-filled vessel mask (uint8 {0, 1}) inside the cranium.
+def vessel_mask_from_cta(volume: Volume) -> Volume:
+    """APPROXIMATE contrast-filled vessel mask (uint8 {0, 1}) of the head and neck.
 
-    Voxels in :data:`VESSEL_HU_RANGE` (150..700 HU) inside ``cranium`` that lie more
-    than :data:`BONE_MARGIN_MM` from dense bone (> 700 HU; this drops the partial-volume
-    rim of the skull and the skull base where bone and lumen overlap in HU), keeping
-    connected components of at least :data:`MIN_VESSEL_COMPONENT_MM3`; on a CTA finer than
-    :data:`VESSEL_WORK_SPACING_MM` all of it on a working grid of that size. Calcifications,
-    enhancing dura/sinuses and vessels touching bone are not separated: use it as an
-    approximation (e.g. a DRR vessel channel), never as a segmentation.
+    Voxels in :data:`VESSEL_HU_RANGE` (150..700 HU) inside the body (HU > :data:`BODY_HU`, largest
+    component, filled per axial slice: the neck's carotid and vertebral arteries that every run shows
+    are in it) that lie more than :data:`BONE_MARGIN_MM` from bone: dense bone (> :data:`DENSE_BONE_HU`)
+    together with the marrow it rings in an axial slice (holes up to :data:`MARROW_MAX_MM2`; a bone
+    core of lumen HU is no vessel); connected components of at least :data:`MIN_VESSEL_COMPONENT_MM3`
+    kept. On a CTA finer than :data:`VESSEL_WORK_SPACING_MM` all of it on a working grid of that size.
+    Venous sinuses, jugular veins and facial bone plates in the lumen HU range are not separated (on
+    phantoms about a quarter of the mask is venous): an approximation, never a segmentation.
+
+    A CT without contrast has no vessel tree: when the largest component spans less than
+    :data:`CONTRAST_SPAN_MM` along the superior axis the mask is empty, ``metadata["contrast"]`` is
+    False and ``method`` says so (a registration then runs without the vessel term).
     """
-    if cranium.array.shape != volume.array.shape:
-        raise InputError(f"cranium mask shape {cranium.array.shape} does not match the CTA grid {volume.array.shape}")
-    method = "approximate: contrast HU range away from bone inside the cranium"
+    axis = _superior_array_axis(volume)
     factors = _work_factors(volume, VESSEL_WORK_SPACING_MM)
-    if max(factors) == 1:
-        return volume.like(_vessel_mask(volume.array, cranium.array > 0, volume.spacing_mm), kind="vessel_mask", method=method)
     full = sitk_from_volume(volume)
-    work = sitk.BinShrink(sitk.Cast(full, sitk.sitkFloat32), factors)
-    work_cranium = sitk.BinShrink(sitk.Cast(sitk_from_volume(cranium) > 0, sitk.sitkFloat32), factors) > 0.5
-    small = _vessel_mask(sitk.GetArrayFromImage(work), sitk.GetArrayFromImage(work_cranium) > 0, work.GetSpacing())
+    work = sitk.BinShrink(sitk.Cast(full, sitk.sitkFloat32), factors) if max(factors) > 1 else full
+    small, span_mm = _vessel_mask(sitk.GetArrayFromImage(work).astype(np.float32), work.GetSpacing(), axis)
+    method = "approximate: contrast HU range in the head and neck away from bone and marrow"
+    if max(factors) > 1:
+        method += f", on a {VESSEL_WORK_SPACING_MM:g} mm working grid"
+    if span_mm < CONTRAST_SPAN_MM:
+        return volume.like(np.zeros(volume.array.shape, np.uint8), kind="vessel_mask", contrast=False,
+                           method=f"{method}: no contrast-filled vessel tree (largest candidate spans {span_mm:.0f} mm "
+                                  f"< {CONTRAST_SPAN_MM:g} mm; CT without contrast?), empty")
     out = _back_to_full(sitk.GetImageFromArray(small), work, full)
-    return volume.like(out, kind="vessel_mask", method=f"{method}, on a {VESSEL_WORK_SPACING_MM:g} mm working grid")
+    return volume.like(out, kind="vessel_mask", contrast=True, method=method)
 
 
-def _vessel_mask(a: np.ndarray, cranium: np.ndarray, spacing_mm) -> np.ndarray:
-    """The rule of :func:`vessel_mask_from_cta` on one grid: ``a`` HU and ``cranium`` bool ``[k, j, i]``,
-    voxel sizes ``spacing_mm`` (i, j, k); uint8 {0, 1}."""
+def _small_holes_slicewise(mask: np.ndarray, axis: int, max_voxels: float) -> np.ndarray:
+    """The 2D holes of at most ``max_voxels`` voxels in every slice of ``mask`` ([k, j, i] bool) taken
+    across ``axis`` (as :func:`_fill_slicewise`, holes only, size-limited)."""
+    slices = np.moveaxis(np.asarray(mask, dtype=bool), axis, 0)
+    n, h, w = slices.shape
+    background = np.zeros((2 * n - 1, h, w), dtype=np.uint8)
+    background[::2] = ~slices
+    labels = sitk.GetArrayFromImage(sitk.ConnectedComponent(sitk.GetImageFromArray(background), False))[::2]
+    small = np.bincount(labels.ravel()) <= max_voxels
+    small[0] = False
+    small[np.concatenate([labels[:, 0].ravel(), labels[:, -1].ravel(), labels[:, :, 0].ravel(), labels[:, :, -1].ravel()])] = False
+    return np.moveaxis(small[labels], 0, axis)
+
+
+def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, float]:
+    """The rule of :func:`vessel_mask_from_cta` on one grid: ``a`` HU ``[k, j, i]``, voxel sizes
+    ``spacing_mm`` (i, j, k), ``axis`` the superior array axis; uint8 {0, 1} mask and the extent (mm)
+    of its largest component along ``axis``."""
+    body = sitk.GetArrayFromImage(_largest_component(sitk.GetImageFromArray((a > BODY_HU).astype(np.uint8)))).astype(bool)
+    body = _fill_slicewise(body, axis).astype(bool)
+    in_plane_mm2 = float(np.prod([s for n, s in enumerate(spacing_mm) if n != 2 - axis]))
+    bone = a > DENSE_BONE_HU
+    bone |= _small_holes_slicewise(bone, axis, MARROW_MAX_MM2 / in_plane_mm2)
+    near_bone = sitk.GetArrayFromImage(sitk.BinaryDilate(sitk.GetImageFromArray(bone.astype(np.uint8)),
+                                                         _radius_vox(BONE_MARGIN_MM, spacing_mm), sitk.sitkBall))
     lo, hi = VESSEL_HU_RANGE
-    candidate = (a >= lo) & (a <= hi) & cranium
-    dense = sitk.GetImageFromArray((a > DENSE_BONE_HU).astype(np.uint8))
-    near_bone = sitk.GetArrayFromImage(sitk.BinaryDilate(dense, _radius_vox(BONE_MARGIN_MM, spacing_mm), sitk.sitkBall))
-    candidate &= near_bone == 0
+    candidate = (a >= lo) & (a <= hi) & body & (near_bone == 0)
     min_voxels = max(1, int(np.ceil(MIN_VESSEL_COMPONENT_MM3 / float(np.prod(spacing_mm)))))
-    cc = sitk.ConnectedComponent(sitk.GetImageFromArray(candidate.astype(np.uint8)), True)
-    kept = sitk.RelabelComponent(cc, minimumObjectSize=min_voxels)
-    return (sitk.GetArrayFromImage(kept) > 0).astype(np.uint8)
+    cc = sitk.RelabelComponent(sitk.ConnectedComponent(sitk.GetImageFromArray(candidate.astype(np.uint8)), True),
+                               minimumObjectSize=min_voxels, sortByObjectSize=True)
+    labels = sitk.GetArrayFromImage(cc)
+    largest = np.moveaxis(labels == 1, axis, 0).any(axis=(1, 2)).nonzero()[0]
+    span_mm = float((largest[-1] - largest[0] + 1) * spacing_mm[2 - axis]) if largest.size else 0.0
+    return (labels > 0).astype(np.uint8), span_mm

@@ -71,7 +71,8 @@ def prepare_case(
     TTO targets at ``tto_px``, the networks' images clipped to ``model_clip_percentiles``).
 
     Missing masks are computed from the CTA when first rendered (``geopose.cta.masks``); the
-    vessel mask is then a contrast-threshold approximation and ``labels_source`` says so. The
+    vessel mask is then a contrast-threshold approximation (empty for a CT without contrast) and
+    ``labels_source`` says which, once it is computed. The
     'pa' run must look PA and the 'lat' run lateral by their primary angles.
     """
     monitor = monitor or Monitor()
@@ -84,13 +85,17 @@ def prepare_case(
     source = {
         "cranium": "given" if cranium_mask is not None else "computed from the CTA (bone threshold, closing, largest component, filled)",
         "vessels": "given segmentation" if segmentation is not None
-        else "contrast-threshold vessel mask inside the cranium (no segmentation given)",
+        else "computed from the CTA (no segmentation given)",
     }
+
+    def computed_vessels() -> Volume:
+        mask = vessel_mask_from_cta(cta)
+        source["vessels"] = f"computed from the CTA (no segmentation given): {mask.metadata['method']}"
+        return mask
+
     monitor.step("prepare", 0.0, "CTA")
     cranium = cranium_mask if cranium_mask is not None else (lambda: cranium_mask_from_cta(cta))
-    vessels = segmentation if segmentation is not None else (
-        lambda: vessel_mask_from_cta(cta, cta.like(volume.mask("cranium").astype(np.uint8)))
-    )
+    vessels = segmentation if segmentation is not None else computed_vessels
     volume = RenderVolume(cta, {"cranium": cranium, "vessels": vessels}, finest_spacing_mm=work_spacing_mm)
     prepared: dict[str, PreparedDSA] = {}
     for i, key in enumerate(VIEW_KEYS):
