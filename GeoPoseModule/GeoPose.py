@@ -142,7 +142,13 @@ class GeoPose(ScriptedLoadableModule):
             "and a table of similarity, quality flag and runtimes; Apply again updates the same "
             "output nodes. Without PyTorch, Init and Refine run on onnxruntime with a numpy "
             "renderer and the test-time optimisation is skipped. Needs 3D Slicer 5.8 or later; "
-            "PyTorch (test-time optimisation) needs Slicer 5.10 or later."
+            "PyTorch (test-time optimisation) needs Slicer 5.10 or later. "
+            "Without a vessel segmentation the arteries are found by a contrast threshold (an "
+            "approximation that also takes enhancing veins; empty for a CT without contrast, then "
+            "the pose rests on the DICOM angles and the skull): for the best accuracy select a "
+            "segmentation of the arteries on the CTA grid, e.g. painted with the Segment Editor "
+            "(Threshold, Islands from the carotids and vertebrals, veins removed) or the artery "
+            "labels of a TotalSegmentator run."
         )
         self.parent.acknowledgementText = _(
             "Implements the method of: Rudolf L. M. van Herten, Robert Graf, Paula Feldman, "
