@@ -33,6 +33,8 @@ DENSE_BONE_HU = 700.0
 MARROW_MAX_MM2 = 400.0
 #: The body (head and neck) is HU above this (air is about -1000 HU, fat -100).
 BODY_HU = -400.0
+#: Depth (mm) below the body's surface at which a vessel may start (skin, holders and tables lie above it).
+BODY_SURFACE_MM = 5.0
 #: A contrast-filled vessel tree spans at least this along the superior axis (mm); the largest candidate
 #: of a CT without contrast (partial-volume bone) spans less (headsq: 57 mm, with arteries 140 mm).
 CONTRAST_SPAN_MM = 100.0
@@ -141,16 +143,16 @@ def vessel_mask_from_cta(volume: Volume) -> Volume:
     """APPROXIMATE contrast-filled vessel mask (uint8 {0, 1}) of the head and neck.
 
     Voxels in :data:`VESSEL_HU_RANGE` (150..700 HU) inside the body (HU > :data:`BODY_HU`, largest
-    component, filled per axial slice: the neck's carotid and vertebral arteries that every run shows
-    are in it) that lie more than :data:`BONE_MARGIN_MM` from bone: dense bone (> :data:`DENSE_BONE_HU`)
+    component, filled per axial slice, less its outer :data:`BODY_SURFACE_MM`: the neck's carotid and
+    vertebral arteries that every run shows are in it) that lie more than :data:`BONE_MARGIN_MM` from bone: dense bone (> :data:`DENSE_BONE_HU`)
     together with the marrow it rings in an axial slice (holes up to :data:`MARROW_MAX_MM2`; a bone
     core of lumen HU is no vessel); connected components of at least :data:`MIN_VESSEL_COMPONENT_MM3`
     kept. On a CTA finer than :data:`VESSEL_WORK_SPACING_MM` all of it on a working grid of that size.
     Venous sinuses, jugular veins and facial bone plates in the lumen HU range are not separated (on
     phantoms about a quarter of the mask is venous): an approximation, never a segmentation.
 
-    A CT without contrast has no vessel tree: when the largest component spans less than
-    :data:`CONTRAST_SPAN_MM` along the superior axis the mask is empty, ``metadata["contrast"]`` is
+    A CT without contrast has no vessel tree: when no component spans :data:`CONTRAST_SPAN_MM` along
+    the superior axis the mask is empty, ``metadata["contrast"]`` is
     False and ``method`` says so (a registration then runs without the vessel term).
     """
     axis = _superior_array_axis(volume)
@@ -163,7 +165,7 @@ def vessel_mask_from_cta(volume: Volume) -> Volume:
         method += f", on a {VESSEL_WORK_SPACING_MM:g} mm working grid"
     if span_mm < CONTRAST_SPAN_MM:
         return volume.like(np.zeros(volume.array.shape, np.uint8), kind="vessel_mask", contrast=False,
-                           method=f"{method}: no contrast-filled vessel tree (largest candidate spans {span_mm:.0f} mm "
+                           method=f"{method}: no contrast-filled vessel tree (the longest candidate spans {span_mm:.0f} mm "
                                   f"< {CONTRAST_SPAN_MM:g} mm; CT without contrast?), empty")
     out = _back_to_full(sitk.GetImageFromArray(small), work, full)
     return volume.like(out, kind="vessel_mask", contrast=True, method=method)
@@ -185,10 +187,13 @@ def _small_holes_slicewise(mask: np.ndarray, axis: int, max_voxels: float) -> np
 
 def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, float]:
     """The rule of :func:`vessel_mask_from_cta` on one grid: ``a`` HU ``[k, j, i]``, voxel sizes
-    ``spacing_mm`` (i, j, k), ``axis`` the superior array axis; uint8 {0, 1} mask and the extent (mm)
-    of its largest component along ``axis``."""
+    ``spacing_mm`` (i, j, k), ``axis`` the superior array axis; uint8 {0, 1} mask and the longest extent
+    (mm) of one of its components along ``axis``."""
     body = sitk.GetArrayFromImage(_largest_component(sitk.GetImageFromArray((a > BODY_HU).astype(np.uint8)))).astype(bool)
     body = _fill_slicewise(body, axis).astype(bool)
+    # lumen lies below the skin: what is in the lumen range at the body's surface is skin, a head holder or a table
+    body = sitk.GetArrayFromImage(sitk.BinaryErode(sitk.GetImageFromArray(body.astype(np.uint8)),
+                                                   _radius_vox(BODY_SURFACE_MM, spacing_mm), sitk.sitkBall)).astype(bool)
     in_plane_mm2 = float(np.prod([s for n, s in enumerate(spacing_mm) if n != 2 - axis]))
     bone = a > DENSE_BONE_HU
     bone |= _small_holes_slicewise(bone, axis, MARROW_MAX_MM2 / in_plane_mm2)
@@ -199,7 +204,8 @@ def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, floa
     min_voxels = max(1, int(np.ceil(MIN_VESSEL_COMPONENT_MM3 / float(np.prod(spacing_mm)))))
     cc = sitk.RelabelComponent(sitk.ConnectedComponent(sitk.GetImageFromArray(candidate.astype(np.uint8)), True),
                                minimumObjectSize=min_voxels, sortByObjectSize=True)
-    labels = sitk.GetArrayFromImage(cc)
-    largest = np.moveaxis(labels == 1, axis, 0).any(axis=(1, 2)).nonzero()[0]
-    span_mm = float((largest[-1] - largest[0] + 1) * spacing_mm[2 - axis]) if largest.size else 0.0
-    return (labels > 0).astype(np.uint8), span_mm
+    shapes = sitk.LabelShapeStatisticsImageFilter()
+    shapes.Execute(cc)
+    dim = 2 - axis  # the superior axis as an (i, j, k) index
+    span_vox = max((shapes.GetBoundingBox(label)[3 + dim] for label in shapes.GetLabels()), default=0)
+    return (sitk.GetArrayFromImage(cc) > 0).astype(np.uint8), float(span_vox * spacing_mm[dim])
