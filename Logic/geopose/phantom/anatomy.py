@@ -57,7 +57,7 @@ class HeadParams:
     avm: dict | None = None  # ``avm.build_avm`` with its ``drain``, for pathology "avm"
 
 
-#: HU of the carotid canal's wall (dense petrous bone directly around the lumen) and its thickness (mm).
+#: Thickness (mm) of the carotid canal's wall: dense petrous bone (HU "dense") directly around the petrous ICA's lumen.
 CANAL_WALL_MM = 3.0
 #: Thickness (mm) of the enhancing dura under the inner table and of the falx.
 DURA_MM = 1.2
