@@ -799,20 +799,25 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         if self.isDSAImage(cta):
             raise InputError(f"the CTA {cta.GetName()!r} is a DSA image (a detector plane or a run's shown frame): "
                              "choose the head CTA volume")
+        # MRML is read and written on this thread; with offGuiThread, Qt events are processed between the steps.
+        tick = slicer.app.processEvents if offGuiThread else (lambda: None)
         ctaVolume = mrml.volume_from_node(cta)
-        validate_cta(ctaVolume, name=f"CTA {cta.GetName()!r}")
+        tick()
         runs = {"pa": self.dsaRunFromNode(dsaPA, overridesPA), "lat": self.dsaRunFromNode(dsaLAT, overridesLAT)}
+        tick()
         labels, segments = self.segmentationLabels(segmentation, cta)
         cranium = self.segmentationLabels(craniumMask, cta)[0] if craniumMask is not None else None
+        tick()
 
         def compute(report):
+            validate_cta(ctaVolume, name=f"CTA {cta.GetName()!r}")
             return register_case(ctaVolume, runs, models=models or self.defaultModelsFolder(), options=options,
                                  cranium_mask=cranium, segmentation=labels, progress=report, cancel=cancel)
 
         result = runOffGuiThread(compute, progress) if offGuiThread else compute(progress)
         for note in result.notes:
             logging.warning(note)
-        out = self.addResultNodes(ctaVolume, runs, result, labels, segments, result.notes, outputs)
+        out = self.addResultNodes(ctaVolume, runs, result, labels, segments, result.notes, outputs, tick=tick)
         out["result"] = result
         out["record"] = build_record(result, runs, inputs={"cta": {"node": cta.GetName()}})
         return out
@@ -827,9 +832,10 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         colors = mrml.segment_colors(segmentation)
         return labels, {value: (name, colors[name]) for name, value in values.items()}
 
-    def addResultNodes(self, ctaVolume, runs: dict, result, labels=None, segments=None, notes=(), outputs=None) -> dict:
+    def addResultNodes(self, ctaVolume, runs: dict, result, labels=None, segments=None, notes=(), outputs=None,
+                       tick: Optional[Callable[[], None]] = None) -> dict:
         """Output nodes for a registration result (``outputs``: existing nodes by output key,
-        updated in place). Consumes, per view key ``pa``/``lat``: ``result.views[key].final_pose``
+        updated in place; ``tick()`` is called after each view's nodes). Consumes, per view key ``pa``/``lat``: ``result.views[key].final_pose``
         (4x4 camera-to-centred, mm), ``.stage_poses``, ``.final_mncc``, ``.silhouette_dice``,
         ``.quality.flag`` / ``.quality.reasons``, ``.prepared.map`` (native MAP); and
         ``result.runtimes_s``, ``result.engine``, ``result.registration``. The table shows each view's
@@ -875,6 +881,8 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
                 moved = _matrix(pose)[:3, 3] - poseCentred[:3, 3]
                 row[f"{stage} to final (mm)"] = float(math.sqrt((moved ** 2).sum()))
             rows.append(row)
+            if tick is not None:
+                tick()
         for row in rows:
             row.update({f"runtime {stage} (s)": float(t) for stage, t in result.runtimes_s.items()})
             row["device"] = f"{result.engine['backend']} on {result.engine['device']}"
@@ -931,7 +939,8 @@ class GeoPoseTest(ScriptedLoadableModuleTest):
     segmentation, each scored against the phantom's truth. Reads the case in place: it writes no
     file, and clears the scene it filled."""
 
-    #: The shipped case: ``geopose phantom --seed 0 --spacing-mm 2 --max-matrix-px 128`` (deterministic), 2.7 MB.
+    #: The shipped case (2.7 MB): ``geopose phantom --seed 0 --spacing-mm 2 --max-matrix-px 128`` (the same images
+    #: again; the DICOM files differ only in their UIDs and dates).
     CASE = "Testing/phantom_seed0_2mm"
     #: Carotid mPCD (mm at the detector) each registered view stays below. Measured on this case (CPU,
     #: 2026-12-04, Init 15.9 / 17.2 mm): 1.9-4.1 mm (onnxruntime), 1.9-3.0 mm (torch + 25 TTO steps), with

@@ -48,13 +48,23 @@ def installed_versions() -> Dict[str, str]:
     return found
 
 
+def _installed_version(name: str, installed: Optional[Dict[str, str]]) -> Optional[str]:
+    """The installed version of distribution ``name`` (from ``installed``, else looked up), or None."""
+    if installed is not None:
+        return installed.get(normalized(name))
+    try:
+        return importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
 def unmet(requirements: Iterable[str], installed: Optional[Dict[str, str]] = None) -> List[str]:
-    """The requirements not installed at their floor version or newer."""
-    installed = installed_versions() if installed is None else installed
+    """The requirements not installed at their floor version or newer (``installed``: as
+    :func:`installed_versions` gives it; looked up per requirement when None)."""
     missing = []
     for requirement in requirements:
         name, floor = split_requirement(requirement)
-        version = installed.get(normalized(name))
+        version = _installed_version(name, installed)
         if version is None or release(version) < release(floor):
             missing.append(requirement)
     return missing
@@ -63,10 +73,9 @@ def unmet(requirements: Iterable[str], installed: Optional[Dict[str, str]] = Non
 def shipped_too_old(requirements: Iterable[str], installed: Optional[Dict[str, str]] = None) -> List[Tuple[str, str]]:
     """``(requirement, installed version)`` for each requirement whose package is installed below its floor:
     meeting it would replace a package of Slicer's own Python, which GeoPose never does."""
-    installed = installed_versions() if installed is None else installed
     found = []
     for requirement in unmet(requirements, installed):
-        version = installed.get(normalized(split_requirement(requirement)[0]))
+        version = _installed_version(split_requirement(requirement)[0], installed)
         if version is not None:
             found.append((requirement, version))
     return found
