@@ -425,6 +425,7 @@ class GeoPoseWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         p = self._parameterNode
         self._cancelRequested = False
         self._setRunning(True)
+        self.ui.statusLabel.text = _("Starting the registration...")
         try:
             with self._errorDisplay(_("Registration failed."), waitCursor=False):
                 options = self.logic.optionsFromParameters(p)
