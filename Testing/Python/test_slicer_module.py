@@ -633,18 +633,20 @@ def test_the_module_has_its_icon_in_the_source_tree(module):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("with_torch", [True, False])
-def test_the_self_test_passes_on_the_shipped_case(newest, monkeypatch, with_torch):
+def test_the_self_test_passes_on_the_shipped_case(newest, monkeypatch, tmp_path, with_torch):
     """GeoPoseTest as Slicer's Reload-and-Test runs it, with PyTorch (four registrations: torch and
-    onnxruntime, with and without a segmentation) and without (two), on CPU; it leaves no file and
-    an empty scene."""
+    onnxruntime, with and without a segmentation) and without (two), on CPU; it leaves no file in
+    the temporary folder (a private one here: the machine's is shared) and an empty scene."""
     import tempfile
 
     module = newest
     if not with_torch:
         monkeypatch.setattr(module.GeoPoseLogic, "torchAvailable", staticmethod(lambda: False))
     registered = _count_registrations(module, monkeypatch)
-    temp = set(Path(tempfile.gettempdir()).iterdir())
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
     module.GeoPoseTest().runTest()
     assert [(o.backend) for o in registered] == (["torch"] * 2 if with_torch else []) + ["onnxruntime"] * 2
-    assert set(Path(tempfile.gettempdir()).iterdir()) <= temp
+    assert list(temp.iterdir()) == []
     assert slicer.mrmlScene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode") == 0
