@@ -5,9 +5,12 @@ BIN := $(VENV)/bin
 
 .PHONY: setup demo test test-slow fuzz bench clean
 
-# Slicer 5.8's Python (3.9) with its pydicom 2.4.4, for Testing/Python/test_python39.py.
+# Slicer 5.8's Python (3.9) with the packages it ships at its versions, for Testing/Python/test_python39.py:
+# .venv-py39 adds GeoPose's requirements (the torch-free registration runs there), .venv-py39-slicer58
+# holds Slicer's packages only (the module's first-install planning runs there, pip --dry-run).
 PY39 ?= $(firstword $(wildcard $(shell pyenv root 2>/dev/null)/versions/3.9*/bin/python3.9) python3.9)
 VENV39 := .venv-py39
+VENV39_SLICER := .venv-py39-slicer58
 
 $(BIN)/geopose: pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -19,15 +22,20 @@ $(BIN)/geopose: pyproject.toml
 setup: $(BIN)/geopose
 
 # Built when a Python 3.9 is found; without one, test_python39 skips and says so.
-$(VENV39)/.installed: Testing/Python39/requirements.txt
+$(VENV39)/.installed: Testing/Python39/requirements.txt Testing/Python39/slicer58.txt
 	@if command -v $(PY39) >/dev/null 2>&1; then \
 		$(PY39) -m venv $(VENV39) && $(VENV39)/bin/python -m pip install -q -r Testing/Python39/requirements.txt && touch $@; \
 	else echo "no Python 3.9 found: the Slicer 5.8 (Python 3.9) check will be skipped"; fi
 
+$(VENV39_SLICER)/.installed: Testing/Python39/slicer58.txt
+	@if command -v $(PY39) >/dev/null 2>&1; then \
+		$(PY39) -m venv $(VENV39_SLICER) && $(VENV39_SLICER)/bin/python -m pip install -q -r Testing/Python39/slicer58.txt && touch $@; \
+	else echo "no Python 3.9 found: the Slicer 5.8 install-planning check will be skipped"; fi
+
 demo: setup
 	$(BIN)/geopose demo --out demo_out
 
-test: setup $(VENV39)/.installed
+test: setup $(VENV39)/.installed $(VENV39_SLICER)/.installed
 	$(BIN)/python -m pytest -q
 
 test-slow: setup
@@ -40,7 +48,7 @@ fuzz: setup
 	nice -n 10 $(BIN)/python Testing/fuzz/run.py --cases $(FUZZ_CASES) --seed 0 --workers 2 --doc docs/fuzz.md
 
 clean:
-	rm -rf $(VENV) $(VENV39) demo_out
+	rm -rf $(VENV) $(VENV39) $(VENV39_SLICER) demo_out
 
 # Renderer benchmark against DiffDRR 0.6.1, which lives in its own environment
 # (.venv-diffdrr, built once by benchmarks/setup_diffdrr_env.sh). Tables go to

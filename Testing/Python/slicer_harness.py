@@ -57,8 +57,29 @@ def _stand_in_classes():
         def mrmlScene(self):
             return self._scene
 
+    class qMRMLSortFilterProxyModel:
+        """The filter of a node combo box: ``hiddenNodeIDs`` (what Slicer's qMRMLSortFilterProxyModel
+        rejects first); setting it refilters the combo box."""
+
+        def __init__(self, combo) -> None:
+            self._combo = combo
+            self._hidden: list = []
+
+        @property
+        def hiddenNodeIDs(self) -> list:
+            return list(self._hidden)
+
+        @hiddenNodeIDs.setter
+        def hiddenNodeIDs(self, ids) -> None:
+            self._hidden = list(ids)
+            self._combo._refilter()
+
     class qMRMLNodeComboBox(qMRMLWidget):
-        """The node selection only (no automatic selection, no "create new" entry: those are C++)."""
+        """The node list and selection of Slicer's combo box, as its C++ filters them
+        (qMRMLSortFilterProxyModel::filterAcceptsNode: hidden node IDs, HideFromEditors, node types,
+        child types), with its automatic selection: without a "None" entry the first node listed is
+        selected when there is none, and a selected node that stops being listed is replaced (by
+        the first node listed, or None). No "create new" entry and no attribute filters."""
 
         _signals = ("currentNodeChanged", "currentNodeIDChanged")
 
@@ -67,6 +88,41 @@ def _stand_in_classes():
             self.nodeTypes, self.noneEnabled, self.addEnabled, self.removeEnabled = [], False, False, False
             self.showChildNodeTypes, self.renameEnabled, self.noneDisplay = True, False, ""
             self._node = None
+            self._filter = qMRMLSortFilterProxyModel(self)
+            self._observed = []
+
+        def sortFilterProxyModel(self):
+            return self._filter
+
+        def setMRMLScene(self, scene) -> None:
+            for observed, tag in self._observed:
+                observed.RemoveObserver(tag)
+            self._observed = [(scene, scene.AddObserver(event, lambda *args: self._refilter()))
+                              for event in (scene.NodeAddedEvent, scene.NodeRemovedEvent)] if scene is not None else []
+            super().setMRMLScene(scene)
+            self._refilter()
+
+        def _accepts(self, node) -> bool:
+            if node.GetID() in self._filter.hiddenNodeIDs or node.GetHideFromEditors():
+                return False
+            if self.showChildNodeTypes:
+                return any(node.IsA(t) for t in self.nodeTypes)
+            return node.GetClassName() in self.nodeTypes
+
+        def nodes(self) -> list:
+            """The nodes the combo box lists, in scene order."""
+            scene = self.mrmlScene()
+            if scene is None:
+                return []
+            found = [scene.GetNthNode(n) for n in range(scene.GetNumberOfNodes())]
+            return [node for node in found if self._accepts(node)]
+
+        def _refilter(self) -> None:
+            listed = self.nodes()
+            if self._node is not None and not any(node is self._node for node in listed):
+                self.setCurrentNode(None if self.noneEnabled or not listed else listed[0])
+            elif self._node is None and not self.noneEnabled and listed:
+                self.setCurrentNode(listed[0])
 
         def currentNode(self):
             return self._node
@@ -112,13 +168,22 @@ class _ModuleManager:
 
 
 class StandInApp:
-    """``slicer.app``: the version, testing mode, translation (none) and no main window."""
+    """``slicer.app``: the version, testing mode, translation (none), no main window, and an event
+    queue: :meth:`post` queues what a user does (a click, an edit) and :meth:`processEvents` runs
+    what is queued, as Qt's event loop does, recording when it was called (``processEventsTimes``,
+    ``time.perf_counter`` s)."""
 
     applicationName = "Slicer"
 
     def __init__(self, tag: str, testing: bool = True) -> None:
         self.majorVersion, self.minorVersion, self.patchVersion = (int(v) for v in tag.lstrip("v").split("."))
         self.testing = testing
+        self._events: list = []
+        self.processEventsTimes: list = []
+
+    def post(self, event) -> None:
+        """Queue ``event()`` (a user action) for the next :meth:`processEvents`."""
+        self._events.append(event)
 
     def testingEnabled(self) -> bool:
         return self.testing
@@ -133,7 +198,12 @@ class StandInApp:
         return []
 
     def processEvents(self) -> None:
-        pass
+        import time
+
+        self.processEventsTimes.append(time.perf_counter())
+        events, self._events = self._events, []
+        for event in events:
+            event()
 
     def setOverrideCursor(self, cursor) -> None:
         pass
@@ -171,6 +241,9 @@ def load_module(tag: str, scene, testing: bool = True, path: Path = MODULE_FILE)
     if str(QT_STAND_INS) not in sys.path:
         sys.path.insert(0, str(QT_STAND_INS))
     _purge()
+    import qt
+
+    qt.QSettings.store.clear()  # a fresh application's settings
     wheel = [p for p in slicer.__path__ if not p.startswith(str(slicer_api()))]
     slicer.__path__[:] = [str(layer), *wheel]
     for name, cls in _stand_in_classes().items():
@@ -189,7 +262,10 @@ def unload() -> None:
     import slicer
 
     while _WIDGETS:
-        _WIDGETS.pop().cleanup()
+        widget = _WIDGETS.pop()
+        widget.cleanup()
+        for combo in widget.parent.findChildren(slicer.qMRMLNodeComboBox):
+            combo.setMRMLScene(None)  # its scene observers go with it
     _purge()
     slicer.__path__[:] = [p for p in slicer.__path__ if not p.startswith(str(slicer_api()))]
     if "mrmlScene" in vars(slicer):

@@ -103,7 +103,9 @@ def test_the_installed_tree_holds_the_module_library_and_resources_only(installe
     outside -= {Path(f).name for f in library | resources}
     leaked = sorted(f for f in files if Path(f).name in outside or f.split("/")[0] in ("Testing", "benchmarks"))
     assert not leaked, leaked
-    extra = sorted(f for f in files if not f.endswith(".pyc") and f not in library | resources | {"GeoPose.py"})
+    module = {str(p.relative_to(REPO / "GeoPoseModule")) for p in (REPO / "GeoPoseModule").rglob("*.py")}
+    assert {"GeoPose.py", "GeoPoseLib/dependencies.py"} <= module <= files, sorted(module - files)
+    extra = sorted(f for f in files if not f.endswith(".pyc") and f not in library | resources | module)
     assert not extra, extra
 
 

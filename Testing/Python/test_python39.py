@@ -1,6 +1,8 @@
-"""Slicer 5.8 runs Python 3.9 with pydicom 2.4.4: the torch-free registration and the DICOM writer
-run there (``.venv-py39``, built by ``make test`` from Testing/Python39/requirements.txt) and give
-the poses this environment's onnxruntime engine gives."""
+"""Slicer 5.8 runs Python 3.9 with numpy 1.26.4 and pydicom 2.4.4: the torch-free registration and
+the DICOM writer run there (``.venv-py39``, built by ``make test`` from Testing/Python39/requirements.txt)
+and give the poses this environment's onnxruntime engine gives; and the module's first install,
+planned by pip in an environment holding only what Slicer 5.8.1 ships (``.venv-py39-slicer58``,
+from Testing/Python39/slicer58.txt), changes none of Slicer's packages."""
 
 from __future__ import annotations
 
@@ -23,8 +25,11 @@ from geopose.register.record import build_record
 
 REPO = Path(__file__).resolve().parents[2]
 PY39 = REPO / ".venv-py39" / "bin" / "python"
+PY39_SLICER = REPO / ".venv-py39-slicer58" / "bin" / "python"
 CHECK = REPO / "Testing" / "Python39" / "check_library.py"
+PLAN = REPO / "Testing" / "Python39" / "plan_install.py"
 REQUIREMENTS_39 = REPO / "Testing" / "Python39" / "requirements.txt"
+SLICER_58 = REPO / "Testing" / "Python39" / "slicer58.txt"
 
 
 def _module_requirements() -> tuple[str, ...]:
@@ -32,10 +37,35 @@ def _module_requirements() -> tuple[str, ...]:
     return next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign) and getattr(n.targets[0], "id", "") == "REQUIREMENTS")
 
 
-def test_the_python39_environment_holds_the_module_requirements():
-    lines = [line.split("#")[0].strip() for line in REQUIREMENTS_39.read_text().splitlines()]
-    names = {re.split("[=>]=", line)[0] for line in lines if line}
-    assert {re.split(">=", r)[0] for r in _module_requirements()} <= names and "pydicom==2.4.4" in lines
+def _lines(path: Path) -> list[str]:
+    return [line for line in (raw.split("#")[0].strip() for raw in path.read_text().splitlines()) if line]
+
+
+def test_the_python39_environment_holds_the_module_requirements_at_slicer_58s_versions():
+    shipped = _lines(SLICER_58)
+    assert {"numpy==1.26.4", "pydicom==2.4.4"} <= set(shipped)  # what Slicer 5.8.1 ships
+    lines = _lines(REQUIREMENTS_39)
+    assert "-r slicer58.txt" in lines
+    names = {re.split("[=>]=", line)[0].lower() for line in lines + shipped if not line.startswith("-r")}
+    assert {re.split(">=", r)[0].lower() for r in _module_requirements()} <= names
+
+
+def test_a_first_install_on_slicer_58_changes_none_of_its_packages():
+    """pip's own resolution (``pip install --dry-run``, nothing installed) of the module's missing
+    requirements in Slicer 5.8's environment, with the constraints the module writes: every package
+    Slicer ships keeps its version (numpy 1.26.4: pylibjpeg-libjpeg 2.3 and pylibjpeg-openjpeg 2.5 need
+    numpy 2, so older releases are picked); without constraints pip would install numpy 2."""
+    if not PY39_SLICER.is_file():
+        pytest.skip("no .venv-py39-slicer58: `make test` builds it (python3.9 -m venv + Testing/Python39/slicer58.txt)")
+    run = subprocess.run([str(PY39_SLICER), str(PLAN), str(REPO)], capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr[-4000:]
+    out = json.loads(run.stdout.splitlines()[-1])
+    assert out["python"] == [3, 9] and out["installed"]["numpy"] == "1.26.4" and out["too_old"] == []
+    assert set(out["missing"]) == set(_module_requirements()) - {"pydicom>=2.4", "Pillow>=10"}
+    constrained, unconstrained = out["constrained"], out["unconstrained"]
+    assert not set(constrained) & set(out["installed"]), "a package Slicer ships would be replaced"
+    assert {re.split(">=", r)[0].lower() for r in out["missing"]} <= set(constrained)
+    assert unconstrained["numpy"].startswith("2."), "pip no longer needs numpy 2 here: the check lost its point"
 
 
 def test_torch_free_registration_and_dicom_writer_on_python39_with_pydicom_2_4(tmp_path):

@@ -15,6 +15,7 @@ Manager, and real pip/PyTorch installations (the installers are recorded, not ru
 from __future__ import annotations
 
 import ast
+import importlib
 import sys
 import types
 import xml.etree.ElementTree as ET
@@ -242,11 +243,34 @@ def test_an_older_slicer_is_refused_with_the_minimum_version(module):
 # ------------------------------------------------------------------ dependencies
 @pytest.fixture()
 def installs(monkeypatch):
-    """Records what would be installed (``slicer.util`` install and dialog calls; a PyTorchUtils stand-in)."""
-    calls = {"pip": [], "torch": [], "asked": []}
-    monkeypatch.setattr(slicer.util, "executePythonModule", lambda module, args, **kw: calls["pip"].append(args))
-    monkeypatch.setattr(slicer.util, "pip_install", lambda reqs, **kw: calls["pip"].append(list(reqs)))
+    """Records what would be installed: Slicer 5.8's ``slicer.util.pip_install`` and 5.12's
+    ``slicer.packaging.pip_install`` (with the constraints file's text at the time of the call),
+    the dialogs (answered by ``answer``), a PyTorchUtils stand-in; ``fail`` makes pip fail."""
+    import subprocess
+
+    calls = {"pip": [], "constraints": [], "torch": [], "asked": [], "plans": []}
     answer = {"ok": True}
+    fail = {"pip": False}
+
+    def record(args, constraints=None):
+        calls["pip"].append(list(args))
+        if constraints is not None:
+            calls["constraints"].append(Path(constraints).read_text())
+        if fail["pip"]:
+            raise subprocess.CalledProcessError(1, ["PythonSlicer", "-m", "pip", "install", *args])
+
+    def pip_install_58(args, **kw):  # Slicer 5.8: slicer.util.pip_install(["-c", file, *requirements])
+        args = list(args)
+        record(args, args[args.index("-c") + 1] if "-c" in args else None)
+
+    monkeypatch.setattr(slicer.util, "pip_install", pip_install_58)
+    monkeypatch.setattr(slicer.util, "executePythonModule", lambda module, args, **kw: record(args))
+    try:  # Slicer 5.12: pip_ensure -> packaging.pip_install(requirements, constraints=...)
+        packaging = importlib.import_module("slicer.packaging")
+    except ImportError:
+        pass
+    else:
+        monkeypatch.setattr(packaging, "pip_install", lambda reqs, constraints=None, **kw: record(reqs, constraints))
 
     def confirm(text, *args, **kwargs):
         calls["asked"].append(text)
@@ -260,26 +284,76 @@ def installs(monkeypatch):
             return None if not answer["ok"] else types.ModuleType("torch")
 
     monkeypatch.setitem(sys.modules, "PyTorchUtils", types.SimpleNamespace(PyTorchUtilsLogic=PyTorchUtilsLogic))
-    calls["answer"] = answer
+    calls["answer"], calls["fail"] = answer, fail
     return calls
 
 
-def test_version_floors_are_enforced_and_a_decline_returns_false(module, monkeypatch, installs):
+@pytest.fixture()
+def absent(module, monkeypatch, installs):
+    """A requirement that is not installed ("geopose-absent-probe>=1.0"), in a Slicer out of testing
+    mode, with pip's dry run answered (its real run in Slicer 5.8's environment: test_python39.py)."""
+    requirement = "geopose-absent-probe>=1.0"
+    monkeypatch.setattr(module, "REQUIREMENTS", module.REQUIREMENTS + (requirement,))
+    slicer.app.testing = False
+
+    def plan(python, requirements, constraints):
+        installs["plans"].append((python, list(requirements), Path(constraints).read_text()))
+        return [("geopose-absent-probe", "1.2"), ("its-dependency", "0.3")]
+
+    monkeypatch.setattr(module.dependencies, "plan_install", plan)
+    return requirement
+
+
+def test_a_first_install_pins_every_installed_package_and_shows_the_versions(module, installs, absent):
+    from importlib.metadata import version
+
     logic = module.GeoPoseLogic()
-    assert logic.missingRequirements() == []  # this environment meets every floor
-    monkeypatch.setattr(module, "REQUIREMENTS", module.REQUIREMENTS + ("numpy>=999",))
-    assert logic.missingRequirements() == ["numpy>=999"]  # installed, but older than the floor
+    assert logic.missingRequirements() == [absent]  # this environment meets every other floor
     installs["answer"]["ok"] = False
-    assert logic.ensureDependencies(askUser=True) is False
-    assert installs["asked"] and installs["pip"] == []
+    assert logic.ensureDependencies(askUser=True) is False  # declined: nothing installed
+    assert installs["pip"] == [] and len(installs["asked"]) == 1
+    assert "geopose-absent-probe 1.2\nits-dependency 0.3" in installs["asked"][0]
+    assert "none of which is changed" in installs["asked"][0]
     installs["answer"]["ok"] = True
-    with pytest.raises(InputError, match="could not be installed: numpy>=999"):
+    with pytest.raises(InputError, match="could not be installed: geopose-absent-probe>=1.0"):  # the recorder installs nothing
         logic.ensureDependencies(askUser=True)
-    (args,) = installs["pip"]
-    assert "numpy>=999" in args
-    new_slicer = slicer.app.minorVersion >= 12
-    assert ("install" in args) == new_slicer  # 5.12+: slicer.packaging.pip_ensure -> pip install; older: util.pip_install
+    ((args,),) = [installs["pip"]]
+    assert absent in args and ("-c" in args) == (slicer.app.minorVersion < 12)
+    # pip ran (and planned) with every package of this Python pinned at its version: numpy stays.
+    (constraints,) = installs["constraints"]
+    assert f"numpy=={version('numpy')}\n" in constraints and f"pydicom=={version('pydicom')}\n" in constraints
+    assert all(plan[2] == constraints for plan in installs["plans"])
     assert installs["torch"] == []
+
+
+def test_a_requirement_above_a_package_slicer_ships_is_refused_before_pip(module, monkeypatch, installs):
+    slicer.app.testing = False
+    monkeypatch.setattr(module, "REQUIREMENTS", module.REQUIREMENTS + ("numpy>=999",))
+    with pytest.raises(InputError, match=r"GeoPose needs numpy>=999 \(this Slicer has .*never replaces a package of Slicer"):
+        module.GeoPoseLogic().ensureDependencies(askUser=True)
+    assert installs["pip"] == [] and installs["asked"] == []
+
+
+def test_nothing_is_installed_in_testing_mode(module, installs, absent):
+    slicer.app.testing = True
+    with pytest.raises(InputError, match="testing mode"):
+        module.GeoPoseLogic().ensureDependencies(askUser=True)
+    assert installs["pip"] == [] and installs["asked"] == [] and installs["plans"] == []
+
+
+def test_a_failed_pip_install_is_one_line(module, monkeypatch, installs, absent):
+    installs["fail"]["pip"] = True
+    shown = []
+    monkeypatch.setattr(slicer.util, "errorDisplay", lambda text, **kw: shown.append((text, kw)))
+    with pytest.raises(InputError, match=r"pip could not install geopose-absent-probe>=1.0 \(exit code 1"):
+        module.GeoPoseLogic().ensureDependencies(askUser=True)
+    # From the panel: one dialog with that line, no traceback.
+    w = H.new_widget(module)
+    _output_nodes(slicer.mrmlScene)
+    w._parameterNode.dsaPA = w._parameterNode.dsaLAT = slicer.mrmlScene.GetFirstNodeByName("DSA run")
+    w.ui.applyButton.click()
+    ((text, kwargs),) = shown
+    assert text.startswith("pip could not install") and "\n" not in text and "detailedText" not in kwargs
 
 
 def test_torch_is_installed_only_when_asked_for_through_pytorch_utils(module, monkeypatch, installs, tmp_path):
@@ -396,7 +470,183 @@ def test_apply_again_updates_the_same_nodes_and_the_references_survive_a_saved_s
     assert again.dsaPA.GetName() == p.dsaPA.GetName() and again.cta.GetName() == "CTA"
 
 
+def _panel_on_phantom(module, phantom, iterations=0, refineSteps=1):
+    """The panel with the phantom's CTA and DSA runs chosen (the shortest registration by default)."""
+    scene = slicer.mrmlScene
+    logic = module.GeoPoseLogic()
+    cta = mrml.read_volume_node(scene, phantom / "cta.nii.gz", "CTA")
+    w = H.new_widget(module)
+    p = w._parameterNode
+    p.cta = cta
+    p.dsaPA = logic.importDSA(str(phantom / "dsa_pa.dcm"), "PA", ctaNode=cta)[0]
+    p.dsaLAT = logic.importDSA(str(phantom / "dsa_lat.dcm"), "LAT", ctaNode=cta)[0]
+    p.iterations, p.refineSteps, p.backend = iterations, refineSteps, "onnxruntime"
+    return w
+
+
+def _count_registrations(module, monkeypatch) -> list:
+    """The library's ``register_case`` as the module calls it, counted (it runs unchanged)."""
+    from geopose.register import pipeline
+
+    calls = []
+    real = pipeline.register_case
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs.get("options"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "register_case", counted)
+    return calls
+
+
+def test_apply_cannot_start_again_while_a_registration_runs(newest, phantom, monkeypatch):
+    """A user edits a spin box and clicks Apply again while the registration runs (events processed
+    during the run): the panel is locked, the click does nothing, one registration runs and the
+    panel is unlocked after it."""
+    module = newest
+    app = slicer.app
+    runs = _count_registrations(module, monkeypatch)
+    w = _panel_on_phantom(module, phantom)
+    seen = {}
+
+    def user_during_run():
+        seen["locked"] = {name: getattr(w.ui, name).isEnabled() for name in ("iterationsSpinBox", "ctaSelector", "applyButton",
+                                                                            "importPAButton", "cancelButton")}
+        if w.ui.iterationsSpinBox.isEnabled():  # a user can only edit what is enabled
+            w.ui.iterationsSpinBox.value = 1
+        w._parameterNode.refineSteps = 2  # e.g. from the Python console: Apply stays disabled
+        seen["apply after edit"] = w.ui.applyButton.enabled
+        w.ui.applyButton.click()
+        w.onApplyButton()  # a click queued before Apply was disabled re-enters the slot
+
+    app.post(user_during_run)
+    w.ui.applyButton.click()
+    assert len(runs) == 1
+    assert seen["locked"] == {"iterationsSpinBox": False, "ctaSelector": False, "applyButton": False,
+                              "importPAButton": False, "cancelButton": True}
+    assert seen["apply after edit"] is False
+    assert "PA: mNCC" in w.ui.statusLabel.text and w._parameterNode.outputsPA.pose is not None
+    assert w.ui.applyButton.enabled and not w.ui.cancelButton.enabled and not w.ui.progressBar.visible
+    assert w.ui.iterationsSpinBox.isEnabled() and w.ui.importPAButton.isEnabled()
+
+
+def test_cancel_stops_the_run_without_an_error_and_changes_no_output(newest, phantom, monkeypatch):
+    module = newest
+    shown = []
+    monkeypatch.setattr(slicer.util, "errorDisplay", lambda text, **kw: shown.append(text))
+    w = _panel_on_phantom(module, phantom)
+    scene = slicer.mrmlScene
+    before = scene.GetNumberOfNodes()
+    slicer.app.post(w.ui.cancelButton.click)
+    w.ui.applyButton.click()
+    assert shown == []  # no "Registration failed." dialog, no traceback
+    assert w.ui.statusLabel.text == "Cancelled: no output node was changed."
+    assert scene.GetNumberOfNodes() == before and module.GeoPoseLogic.outputNodes(w._parameterNode) == {}
+    assert w.ui.applyButton.enabled and not w.ui.cancelButton.enabled and not w.ui.progressBar.visible
+    # The next Apply runs to its end.
+    w.ui.applyButton.click()
+    assert "PA: mNCC" in w.ui.statusLabel.text and shown == []
+
+
+def test_the_gui_processes_events_every_half_second_during_a_registration(newest, phantom):
+    """The registration runs off the GUI thread: the GUI thread processes events at least every
+    0.5 s from the click to the end (the times Qt's event processing was called, on the phantom
+    with the similarity search, Refine and 5 TTO steps: the long stages). Measured on a second
+    Apply: the first of a session also loads the library's stages, which holds the interpreter
+    (and so the GUI thread) up to about 1 s once (0.98 s measured on 2 busy cores)."""
+    import time
+
+    w = _panel_on_phantom(newest, phantom, iterations=5, refineSteps=5)
+    w._parameterNode.backend = "torch"
+    app = slicer.app
+    w.ui.applyButton.click()
+    app.processEventsTimes.clear()
+    start = time.perf_counter()
+    w.ui.applyButton.click()
+    end = time.perf_counter()
+    times = [start, *app.processEventsTimes, end]
+    gaps = np.diff(times)
+    assert "PA: mNCC" in w.ui.statusLabel.text and len(times) > 20
+    assert gaps.max() < 0.5, f"largest gap {gaps.max():.2f} s at {np.argmax(gaps)} of {len(gaps)} (run {end - start:.1f} s)"
+
+
+def test_pytorch_is_offered_once_with_what_the_tto_adds(newest, phantom, monkeypatch, installs):
+    """Backend "auto" without PyTorch (here: a floor above the installed torch): Apply offers PyTorch
+    with what the test-time optimisation adds; a decline registers with onnxruntime, says what was
+    skipped, and is not asked again. On Slicer 5.8 (Python 3.9) nothing is offered; the status says why."""
+    module = newest
+    monkeypatch.setattr(module, "TORCH_REQUIREMENT", ">=999")
+    runs = _count_registrations(module, monkeypatch)
+    w = _panel_on_phantom(module, phantom)
+    w._parameterNode.backend = "auto"
+    installs["answer"]["ok"] = False
+    w.ui.applyButton.click()
+    (offer,) = installs["asked"]
+    assert offer.startswith(module.TTO_BENEFIT) and "3.0 mm to 0.9 mm" in offer and "Without a vessel segmentation" in offer
+    assert runs[-1].backend == "onnxruntime" and "test-time optimisation was skipped" in w.ui.statusLabel.text
+    w.ui.applyButton.click()
+    assert len(installs["asked"]) == 1 and len(runs) == 2  # asked once
+    sys.modules["qt"].QSettings.store.clear()
+    installs["answer"]["ok"] = True  # accepted: installed through PyTorchUtils, without a second question
+    w.ui.applyButton.click()
+    assert installs["torch"] == [{"askConfirmation": False, "torchVersionRequirement": ">=999"}]
+    monkeypatch.setattr(module, "TORCH_MINIMUM_PYTHON", (99, 0))  # Slicer 5.8
+    sys.modules["qt"].QSettings.store.clear()
+    w.ui.applyButton.click()
+    assert len(installs["asked"]) == 2 and "needs Slicer 5.10 or later" in w.ui.statusLabel.text
+
+
+# ------------------------------------------------------------------ node roles
+def test_a_dsa_runs_shown_frame_is_named_apart_and_never_an_input(module, tmp_path):
+    """The volume that shows a run's current frame (the sequence browser's proxy) is named apart from
+    the sequence, listed in no input selector, never auto-selected as the CTA; picked from the Python
+    console it stands for its sequence, and it is refused as a CTA."""
+    from geopose.dsa import DSARun, write_dsa_nifti
+
+    scene = slicer.mrmlScene
+    w = H.new_widget(module)
+    p = w._parameterNode
+    run = DSARun(np.ones((2, DET.rows, DET.cols), np.float32), DET, ANGLES, 100.0)
+    path = write_dsa_nifti(run, tmp_path / "pa.nii.gz")
+    seq, browser = module.GeoPoseLogic().importDSA(str(path), "PA")
+    w.updateSelectorFilters()  # as the scene's node events do
+    proxy = browser.GetProxyNode(seq)
+    assert (seq.GetName(), proxy.GetName()) == ("DSA PA", "DSA PA (shown frame)")
+    assert [n.GetName() for n in scene.GetNodesByName("DSA PA")] == ["DSA PA"]
+    assert p.cta is None and w.ui.ctaSelector.currentNode() is None  # the only volume is the shown frame
+    assert proxy not in w.ui.dsaPASelector.nodes() and seq in w.ui.dsaPASelector.nodes()
+    cta = mrml.volume_to_node(scene, __import__("test_mrml_adapters")._cta()[0], "CTA")
+    assert w.ui.ctaSelector.nodes() == [cta] and p.cta is cta  # selected automatically, as Slicer's combo box does
+    logic = module.GeoPoseLogic()
+    assert logic.firstCTACandidate() is cta
+    picked = logic.dsaRunFromNode(proxy)
+    assert picked.detector == run.detector and picked.angles == run.angles and picked.frames.shape[0] == 2
+    with pytest.raises(InputError, match="is a DSA image"):
+        logic.register(cta=proxy, dsaPA=seq, dsaLAT=seq)
+
+
+def test_the_module_has_its_icon_in_the_source_tree(module):
+    parent = types.SimpleNamespace(path=str(H.MODULE_FILE))
+    module.GeoPose(parent)
+    assert Path(parent.icon.path) == H.REPO / "Resources" / "Icons" / "GeoPose.png" and Path(parent.icon.path).is_file()
+
+
 @pytest.mark.slow
-def test_the_self_test_passes_on_the_phantom(module):
-    """GeoPoseTest as Slicer's Reload-and-Test runs it: full registration on CPU (about 2 minutes)."""
+@pytest.mark.parametrize("with_torch", [True, False])
+def test_the_self_test_passes_on_the_shipped_case(newest, monkeypatch, tmp_path, with_torch):
+    """GeoPoseTest as Slicer's Reload-and-Test runs it, with PyTorch (four registrations: torch and
+    onnxruntime, with and without a segmentation) and without (two), on CPU; it leaves no file in
+    the temporary folder (a private one here: the machine's is shared) and an empty scene."""
+    import tempfile
+
+    module = newest
+    if not with_torch:
+        monkeypatch.setattr(module.GeoPoseLogic, "torchAvailable", staticmethod(lambda: False))
+    registered = _count_registrations(module, monkeypatch)
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
     module.GeoPoseTest().runTest()
+    assert [(o.backend) for o in registered] == (["torch"] * 2 if with_torch else []) + ["onnxruntime"] * 2
+    assert list(temp.iterdir()) == []
+    assert slicer.mrmlScene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode") == 0

@@ -144,6 +144,11 @@ class QWidget(QObject):
     def isWidgetType(self) -> bool:
         return True
 
+    def isEnabled(self) -> bool:
+        """Enabled, and so are all its parents (Qt disables the children of a disabled widget)."""
+        parent = self.parent()
+        return self.enabled and (parent is None or not isinstance(parent, QWidget) or parent.isEnabled())
+
     def show(self) -> None:
         self.visible = True
 
@@ -222,7 +227,7 @@ class QAbstractButton(_Valued):
         self.checked = False
 
     def click(self) -> None:
-        if not self.enabled:
+        if not self.isEnabled():
             return
         if self.checkable:
             self.checked = not self.checked
@@ -353,16 +358,18 @@ class QColor:
 
 
 class QSettings:
-    """Empty settings: every ``value`` is the default."""
+    """Application settings, kept in memory for the process (``QSettings.store``, which a test may clear)."""
+
+    store: dict = {}
 
     def contains(self, key: str) -> bool:
-        return False
+        return key in QSettings.store
 
     def value(self, key: str, default=None):
-        return default
+        return QSettings.store.get(key, default)
 
     def setValue(self, key: str, value) -> None:
-        pass
+        QSettings.store[key] = value
 
 
 class QThread:

@@ -34,6 +34,9 @@ from .plane import (
     frames_from_sequence,
     geometry_from_attributes,
     plane_volume_node,
+    proxy_name,
+    proxy_sequence,
+    sequence_proxy_ids,
     set_geometry_attributes,
 )
 from .outputs import (
@@ -52,6 +55,7 @@ __all__ = [
     "frames_from_sequence", "frustum_model_node",
     "geometry_from_attributes", "labelmap_from_segmentation", "load_mrb", "matrix_from_vtk", "matrix_to_vtk",
     "new_scene", "output_node", "plane_volume_node", "pose_transform_node", "prepare_scene", "project_labels",
+    "proxy_name", "proxy_sequence", "sequence_proxy_ids",
     "projected_segmentation_node", "read_volume_node", "result_table_node", "save_mrb",
     "segment_colors", "segmentation_from_labelmap", "segmentation_from_masks", "set_geometry_attributes", "volume_from_node", "volume_to_node",
     "write_volume_node", "sequences_logic", "transform_matrix",

@@ -17,6 +17,7 @@ from dataclasses import asdict
 
 import numpy as np
 import slicer
+import vtk
 
 from ..geometry.detector import AP_REORIENT, CArmAngles, Detector
 from .scene import matrix_to_vtk, output_node, sequences_logic
@@ -31,6 +32,9 @@ __all__ = [
     "dsa_sequence_node",
     "frames_from_sequence",
     "frames_from_node",
+    "proxy_name",
+    "proxy_sequence",
+    "sequence_proxy_ids",
     "set_geometry_attributes",
     "geometry_from_attributes",
 ]
@@ -113,12 +117,40 @@ def dsa_sequence_node(
     if browser is None:
         browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", f"{seq.GetName()} browser")
         browser.SetAndObserveMasterSequenceNodeID(seq.GetID())
+    browser.SetOverwriteProxyName(seq, False)  # the browser would name the proxy like the sequence
     logic.UpdateProxyNodesFromSequences(browser)
     proxy = browser.GetProxyNode(seq)
     if proxy is not None:
-        proxy.SetName(seq.GetName())
+        proxy.SetName(proxy_name(seq.GetName()))
         proxy.CreateDefaultDisplayNodes()
     return seq, browser
+
+
+def proxy_name(sequence_name: str) -> str:
+    """Name of the volume that shows a DSA sequence's current frame (its browser's proxy): not the sequence's own."""
+    return f"{sequence_name} (shown frame)"
+
+
+def proxy_sequence(node) -> "slicer.vtkMRMLSequenceNode | None":
+    """The sequence whose current item ``node`` shows (``node`` is a sequence browser's proxy), else None."""
+    scene = node.GetScene() if node is not None else None
+    if scene is None:
+        return None
+    for n in range(scene.GetNumberOfNodesByClass("vtkMRMLSequenceBrowserNode")):
+        browser = scene.GetNthNodeByClass(n, "vtkMRMLSequenceBrowserNode")
+        if browser.IsProxyNodeID(node.GetID()):
+            return browser.GetSequenceNode(node)
+    return None
+
+
+def sequence_proxy_ids(scene: "slicer.vtkMRMLScene") -> list[str]:
+    """IDs of every sequence browser's proxy nodes in ``scene`` (what a node selector hides, as they are not inputs)."""
+    ids = []
+    for n in range(scene.GetNumberOfNodesByClass("vtkMRMLSequenceBrowserNode")):
+        proxies = vtk.vtkCollection()
+        scene.GetNthNodeByClass(n, "vtkMRMLSequenceBrowserNode").GetAllProxyNodes(proxies)
+        ids += [proxies.GetItemAsObject(i).GetID() for i in range(proxies.GetNumberOfItems())]
+    return ids
 
 
 def frames_from_sequence(seq: "slicer.vtkMRMLSequenceNode") -> np.ndarray:
