@@ -24,6 +24,7 @@ import numpy as np
 
 from . import limits as L
 from .errors import InputError
+from .inputpaths import regular_file
 
 __all__ = ["DeclaredImage", "check_image_file", "image_extension", "IMAGE_EXTENSIONS"]
 
@@ -54,6 +55,7 @@ def check_image_file(path: Path, max_voxels: int) -> DeclaredImage:
     """Parse ``path``'s header, refuse more than ``max_voxels`` voxels, and check its voxel data
     (byte count; finite values for float types). Returns the declared grid and the files read."""
     ext = image_extension(path)
+    regular_file(path, "image file")
     if path.stat().st_size > L.MAX_IMAGE_FILE_BYTES:
         raise InputError(f"{path.name} has {path.stat().st_size} bytes, more than the {L.MAX_IMAGE_FILE_BYTES} read here")
     if ext in (".nii", ".nii.gz"):
@@ -114,8 +116,9 @@ def _read_chunks(stream: BinaryIO, limit: int) -> Iterator[bytes]:
 
 def _file_chunks(files: list[Path], skip: Callable[[Path], int], opener: Callable[[Path], BinaryIO], limit: int) -> Iterator[bytes]:
     for f in files:
-        if not f.is_file():
+        if not f.exists():
             raise InputError(f"data file {f} named by the header does not exist: keep the data files next to the header")
+        regular_file(f, "data file named by the header")
         with opener(f) as stream:
             offset = skip(f)
             if offset:
@@ -222,10 +225,12 @@ def _int_list(path: Path, key: str, text: str) -> list[int]:
 
 
 def _require_files(header: Path, files: list[Path]) -> None:
-    missing = [f.name for f in files if not f.is_file()]
+    missing = [f.name for f in files if not f.exists()]
     if missing:
         raise InputError(f"{header.name} names data file(s) that do not exist ({', '.join(missing[:3])}): keep the data files "
                          "next to the header, or check its data-file field")
+    for f in files:
+        regular_file(f, f"data file named by {header.name}")
 
 
 def _check_counts(path: Path, fields: dict[str, str], counts: dict[str, int]) -> None:

@@ -26,6 +26,7 @@ import pydicom
 from .. import limits as L
 from ..dicomio import decode_frames, floats_tag, is_non_image, looks_like_dicom, read_dataset
 from ..errors import InputError
+from ..inputpaths import folder_files
 
 __all__ = ["read_dicom_series"]
 
@@ -38,7 +39,7 @@ def _series_headers(folder: Path) -> dict[str, list[tuple[Path, pydicom.Dataset]
     (a README) and DICOM files of a known non-image class are skipped; a DICOM file that cannot be read
     or has no image is refused (a slice dropped silently would shift the whole volume)."""
     series: dict[str, list[tuple[Path, pydicom.Dataset]]] = {}
-    for f in sorted(p for p in folder.iterdir() if p.is_file()):
+    for f in folder_files(folder, "CT series"):
         try:
             ds = read_dataset(f, stop_before_pixels=True)
         except InputError as exc:

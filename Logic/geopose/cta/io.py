@@ -18,6 +18,7 @@ from .. import limits as L
 from ..checksums import file_sha256
 from ..errors import InputError
 from ..geometry.frames import RAS_TO_LPS
+from ..inputpaths import input_kind
 from ..imagefiles import IMAGE_EXTENSIONS, check_image_file, image_extension
 from ..volume import Volume
 from .dicom_series import read_dicom_series
@@ -118,9 +119,7 @@ def load_cta(path: str | Path, *, hu_offset: float = 0.0, series_uid: str | None
     """
     path = Path(path)
     hu_offset = L.check_range("hu_offset", hu_offset, L.HU_OFFSET, "use -1024 for raw CT numbers, else 0")
-    if not path.exists():
-        raise InputError(f"CTA not found: {path} (check the path; a DICOM series is given as its folder)")
-    if path.is_dir():
+    if input_kind(path, "CTA") == "folder":
         array, ijk_to_lps, files, notes = read_dicom_series(path, series_uid)
         meta = {"source_path": str(path.resolve()), "source_files": len(files), "sha256": file_sha256(files),
                 "hu_offset": float(hu_offset), **notes}

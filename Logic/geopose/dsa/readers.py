@@ -43,6 +43,7 @@ from ..checksums import file_sha256
 from ..dicomio import decode_frames, float_tag, floats_tag, int_tag, looks_like_dicom, raw_tag, read_dataset
 from ..errors import InputError
 from ..geometry.detector import CArmAngles, Detector
+from ..inputpaths import folder_files, input_kind
 from ..imagefiles import IMAGE_EXTENSIONS, check_image_file, image_extension
 from ..jsonio import read_json
 from .run import (
@@ -287,7 +288,7 @@ def _dicom_headers(folder: Path) -> list[tuple[Path, pydicom.Dataset]]:
     """(file, header) of every DICOM file of ``folder``; files not meant to be DICOM are skipped, damaged
     DICOM files refused (a frame dropped silently would change the run)."""
     headers = []
-    for f in sorted(p for p in folder.iterdir() if p.is_file()):
+    for f in folder_files(folder, "DSA run"):
         try:
             headers.append((f, read_dataset(f, stop_before_pixels=True)))
         except InputError as exc:
@@ -376,7 +377,7 @@ def _read_image_with_sidecar(path: Path, overrides: dict, photometric: str | Non
         raise InputError(f"{path.name}: SimpleITK read {array.size} pixels but the header declares {shape}: the header is damaged")
     array = array.reshape(shape)
     side = sidecar_path(path)
-    found = _read_sidecar(side) if side.exists() else {}
+    found = _read_sidecar(side) if side.exists() else {}  # a special file named like a sidecar is refused by read_json
     declared_pi = found.pop("photometric_interpretation", "MONOCHROME2")
     if declared_pi not in PHOTOMETRIC:
         raise InputError(f"photometric_interpretation in {side.name} must be MONOCHROME1 or MONOCHROME2, got {declared_pi!r}")
@@ -408,9 +409,7 @@ def read_dsa(path: str | Path, *, photometric_interpretation: str | None = None,
     tag/key and the remedy.
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"DSA run not found: {path} (check the path)")
-    if path.is_dir():
+    if input_kind(path, "DSA run") == "folder":
         return _read_dicom_folder(path, overrides, photometric_interpretation)
     if image_extension(path) in NIFTI_EXTENSIONS:
         return _read_image_with_sidecar(path, overrides, photometric_interpretation)
