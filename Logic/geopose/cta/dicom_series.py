@@ -32,6 +32,8 @@ __all__ = ["read_dicom_series"]
 
 #: In-plane offset (mm) between slice origins beyond which a series counts as tilted.
 TILT_OFFSET_MM = 0.01
+#: HU given to padding pixels (PixelPaddingValue: outside the scanned field): air.
+PADDING_HU = -1024.0
 
 
 def _series_headers(folder: Path) -> dict[str, list[tuple[Path, pydicom.Dataset]]]:
@@ -148,9 +150,11 @@ def _regularise(
                          f"{max(abs(offsets).max(), 0):.4g} mm: no plausible CT; ImagePositionPatient is damaged")
     i0, j0 = math.floor(di.min()), math.floor(dj.min())
     shape = (h + math.ceil(dj.max()) - j0, w + math.ceil(di.max()) - i0)
-    if shape[0] > hi or shape[1] > hi or n_out * shape[0] * shape[1] > L.CTA_MAX_VOXELS:
-        raise InputError(f"resampling the series would need {n_out} x {shape[0]} x {shape[1]} voxels: the slice positions "
-                         "(ImagePositionPatient) are damaged")
+    voxels = n_out * shape[0] * shape[1]
+    if shape[0] > hi or shape[1] > hi or voxels > L.CTA_MAX_VOXELS or voxels > L.CTA_RESAMPLE_MAX_GROWTH * planes.size:
+        raise InputError(f"resampling the series would need {n_out} x {shape[0]} x {shape[1]} voxels from {planes.shape[0]} x "
+                         f"{planes.shape[1]} x {planes.shape[2]} acquired (at most {L.CTA_RESAMPLE_MAX_GROWTH} times as many): "
+                         "the slice positions (ImagePositionPatient) or spacings are damaged; export the series again")
     fill = float(planes.min())
     out = np.empty((n_out,) + shape, dtype=np.float32)
     for t in range(n_out):
@@ -166,6 +170,22 @@ def _regularise(
     return out, dz, (i0, j0)
 
 
+def shape_of(headers: list[tuple[Path, pydicom.Dataset]]) -> tuple[int, int]:
+    """(rows, columns) of a series' slices (checked equal for all by :func:`_geometry`)."""
+    first = headers[0][1]
+    return int(first.get("Rows", 0)), int(first.get("Columns", 0))
+
+
+def _decoded_slice(f: Path, check) -> tuple[np.ndarray, dict]:
+    frames, notes = decode_frames(read_dataset(f), f.name, check, padding_value=PADDING_HU)
+    return frames[0], notes
+
+
+def _ids(ds: pydicom.Dataset) -> dict[str, str]:
+    """PatientID, StudyInstanceUID and SeriesInstanceUID of a slice, those present."""
+    return {k: str(ds.get(k)) for k in ("PatientID", "StudyInstanceUID", "SeriesInstanceUID") if ds.get(k) not in (None, "")}
+
+
 def read_dicom_series(folder: Path, series_uid: str | None) -> tuple[np.ndarray, np.ndarray, list[Path], dict]:
     """Voxels ``[k, j, i]`` (HU, float32), ``ijk -> LPS`` 4x4, the files in slice order and
     ``slice_geometry`` notes of the series in ``folder`` (``series_uid`` picks one of several)."""
@@ -175,11 +195,11 @@ def read_dicom_series(folder: Path, series_uid: str | None) -> tuple[np.ndarray,
     ids = sorted(groups)
     if series_uid is None:
         if len(ids) > 1:
-            raise InputError(f"{folder} holds {len(ids)} DICOM series ({', '.join(ids)}): choose one with series_uid=... "
-                             "or put the CTA series in a folder of its own")
+            raise InputError(f"{folder} holds {len(ids)} DICOM series ({', '.join(ids)}): choose one with --cta-series-uid UID "
+                             "(Python: load_cta(..., series_uid=UID)) or put the CTA series in a folder of its own")
         series_uid = ids[0]
     elif series_uid not in groups:
-        raise InputError(f"series {series_uid} is not in {folder}; it holds {', '.join(ids)}")
+        raise InputError(f"series {series_uid} is not in {folder}; it holds {', '.join(ids)}: give one of them to --cta-series-uid")
     headers = groups[series_uid]
     lo, hi = L.CTA_VOXELS_PER_AXIS
     if not lo <= len(headers) <= hi:
@@ -201,9 +221,20 @@ def read_dicom_series(folder: Path, series_uid: str | None) -> tuple[np.ndarray,
             raise InputError(f"{folder.name}: a slice declares {shape[0]} frame(s) of {shape[1]} x {shape[2]} pixels: a CT slice "
                              f"is one frame of {lo}..{hi} pixels per side")
 
-    planes = np.concatenate([decode_frames(read_dataset(f), f.name, check)[0] for f, _ in headers])
+    rows, cols = shape_of(headers)
+    if len(headers) * rows * cols > L.CTA_MAX_VOXELS:
+        raise InputError(f"{folder.name}: {len(headers)} slices of {rows} x {cols} pixels are more than the {L.CTA_MAX_VOXELS} "
+                         "voxels a CTA may have here; give a smaller series (or crop it to the head)")
+    planes = np.empty((len(headers), rows, cols), dtype=np.float32)
+    padded = 0
+    for k, (f, _) in enumerate(headers):
+        planes[k], slice_notes = _decoded_slice(f, check)
+        padded += slice_notes.get("pixel_padding", {}).get("pixels", 0)
     ijk_to_lps = np.eye(4)
-    notes: dict = {"slice_geometry": {"slices": len(headers), "median_gap_mm": float(step)}}
+    notes: dict = {"slice_geometry": {"slices": len(headers), "median_gap_mm": float(step)}, "dicom_ids": _ids(headers[0][1])}
+    if padded:
+        notes["pixel_padding"] = {"voxels": int(padded), "set_to_hu": PADDING_HU,
+                                  "why": "PixelPaddingValue marks pixels outside the scanned field"}
     if even and not tilted:
         ijk_to_lps[:3, :3] = np.stack([row * spacing[1], col * spacing[0], normal * step], axis=1)
         ijk_to_lps[:3, 3] = positions[0]
