@@ -2,8 +2,9 @@
 
 A device (``/dev/zero``), a FIFO or a socket, also behind a symlink, is refused before it is
 opened (``os.stat`` follows links; opening a FIFO blocks until a writer comes, reading a device
-never ends). Files are read with :func:`read_bounded`, which trusts no ``st_size`` (a special
-file reports 0) and stops one byte past its bound. Every refusal is an
+never ends). Files are read with :func:`read_bounded`, which opens without blocking, checks the
+open handle, refuses a size over its bound and sizes its buffer by the regular file's size (a file
+that changes while it is read is refused, not read on). Every refusal is an
 :class:`~geopose.errors.InputError` naming the path.
 """
 
@@ -52,13 +53,21 @@ def regular_file(path: Path, what: str) -> Path:
 
 
 def read_bounded(path: Path, limit_bytes: int, what: str, remedy: str) -> bytes:
-    """The bytes of the regular file ``path``; more than ``limit_bytes`` (read, not as reported) is an
-    :class:`InputError` ending in ``remedy``."""
+    """The bytes of the regular file ``path``; more than ``limit_bytes`` is an :class:`InputError` ending in
+    ``remedy``. The file is opened without blocking and checked on its open handle (a FIFO swapped in after
+    the check cannot block), and the buffer is sized by the handle's size, never by the bound."""
     regular_file(path, what)
-    with open(path, "rb") as handle:
-        data = handle.read(limit_bytes + 1)
-    if len(data) > limit_bytes:
-        raise InputError(f"{path.name} has more than the {limit_bytes} bytes a {what} may have here; {remedy}")
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    with os.fdopen(fd, "rb") as handle:
+        status = os.fstat(handle.fileno())
+        if not stat.S_ISREG(status.st_mode):
+            raise InputError(f"the {what} {path} is {_special(status.st_mode)}: {_REMEDY}")
+        if status.st_size > limit_bytes:
+            raise InputError(f"{path.name} has {status.st_size} bytes, more than the {limit_bytes} a {what} may have here; {remedy}")
+        data = handle.read(status.st_size + 1)
+    if len(data) != status.st_size:
+        raise InputError(f"{path.name} changed while it was read ({status.st_size} bytes at the start, {len(data)} read): "
+                         "wait until it is completely copied, then run again")
     return data
 
 
