@@ -26,14 +26,19 @@ except ImportError:
 
 import harness  # noqa: E402
 import targets  # noqa: E402
+import cli_targets  # noqa: E402
 
 
 def fuzz(cases: int, seed: int, workers: int, timeout_s: float, memory_bytes: int, first: int = 0,
-         progress: bool = False) -> harness.Report:
-    """Build the originals in a temporary folder and run cases ``first .. first + cases - 1``."""
+         progress: bool = False, suite: str = "readers") -> harness.Report:
+    """Build the originals in a temporary folder and run cases ``first .. first + cases - 1`` of ``suite``:
+    ``readers`` (mutated files, :mod:`targets`) or ``cli`` (``geopose register`` situations, :mod:`cli_targets`)."""
     with tempfile.TemporaryDirectory(prefix="geopose-fuzz-") as tmp:
         root = Path(tmp) / "originals"
-        originals = targets.build_originals(root)
+        if suite == "cli":
+            cli_targets.build_cli_originals(root)
+        else:
+            originals = targets.build_originals(root)
         work = Path(tmp) / "work"
 
         def case(index: int) -> tuple[str, str, str, str]:
@@ -42,16 +47,20 @@ def fuzz(cases: int, seed: int, workers: int, timeout_s: float, memory_bytes: in
                 os.dup2(devnull, 2)
                 warnings.simplefilter("ignore")
                 case.quiet = True  # type: ignore[attr-defined]
-            return targets.run_case(seed, index, root, originals, Path(harness.pid_scratch(str(work))))
+            scratch = Path(harness.pid_scratch(str(work)))
+            if suite == "cli":
+                return cli_targets.run_cli_case(seed, index, root, scratch)
+            return targets.run_case(seed, index, root, originals, scratch)
 
         step = max(1, cases // 20)
 
         def report_progress(done: int) -> None:
             if progress and (done % step == 0 or done == cases):
-                print(f"  {done}/{cases} cases", file=sys.stderr, flush=True)
+                print(f"  {suite}: {done}/{cases} cases", file=sys.stderr, flush=True)
 
+        describe = cli_targets.describe_cli_case if suite == "cli" else targets.describe_case
         return harness.run_cases(
-            case, range(first, first + cases), describe=lambda i: targets.describe_case(seed, i), workers=workers,
+            case, range(first, first + cases), describe=lambda i: describe(seed, i), workers=workers,
             timeout_s=timeout_s, memory_bytes=memory_bytes, progress=report_progress,
         )
 
