@@ -371,3 +371,18 @@ def test_contradicting_sform_and_qform_get_a_note(tmp_path: Path):
     path.write_bytes(bytes(data))
     note = load_cta(path).metadata["orientation_note"]
     assert "sform and qform disagree" in note and "mirrored" in note
+
+
+def test_jpeg_ls_run_decodes_like_the_uncompressed_one(tmp_path: Path):
+    """A DSA run in JPEG-LS (the test encoder of Testing/fuzz; no pydicom encoder is installed) reads frame for frame
+    as its uncompressed original."""
+    run = _run(0.0)
+    src = write_dsa_dicom(run, tmp_path / "raw.dcm")
+    ds = pydicom.dcmread(src)
+    stored = ds.pixel_array.reshape(int(ds.NumberOfFrames), ds.Rows, ds.Columns)
+    ds.PixelData = pydicom.encaps.encapsulate([encode_jpeg_ls(frame, int(ds.BitsStored)) for frame in stored])
+    ds["PixelData"].VR = "OB"
+    ds["PixelData"].is_undefined_length = True
+    ds.file_meta.TransferSyntaxUID = pydicom.uid.JPEGLSLossless
+    ds.save_as(tmp_path / "jls.dcm", enforce_file_format=True)
+    np.testing.assert_array_equal(read_dsa(tmp_path / "jls.dcm").frames, read_dsa(src).frames)

@@ -318,11 +318,16 @@ def _read_dicom_folder(folder: Path, overrides: dict, photometric: str | None) -
             a, b = float_tag(first, key, headers[0][0].name), float_tag(ds, key, f.name)
             if a is not None and b is not None and abs(a - b) > ANGLE_TOLERANCE_DEG:
                 raise InputError(f"{f.name} has {key} {b} but the first frame {a}: the folder is not one fixed-angle run")
-    decoded = [_frames(read_dataset(f), f.name) for f, _ in headers]
-    shapes = {frames.shape[1:] for frames, _ in decoded}
-    if len(shapes) > 1:
-        raise InputError(f"{folder} holds frames of different sizes {sorted(shapes)}: the folder is not one run")
-    frames = np.concatenate([frames for frames, _ in decoded])
+    size = (int_tag(first, "Rows", headers[0][0].name), int_tag(first, "Columns", headers[0][0].name))
+    frames = np.empty((len(headers),) + size, dtype=np.float32)  # bounded by check_frames_shape above
+    integrity = set()
+    for k, (f, _) in enumerate(headers):
+        frame, frame_notes = _frames(read_dataset(f), f.name)
+        if frame.shape != (1,) + size:
+            raise InputError(f"{folder} holds frames of different sizes ({f.name}: {frame.shape[1:]}, {headers[0][0].name}: "
+                             f"{size}): the folder is not one run")
+        frames[k] = frame[0]
+        integrity.add(frame_notes["pixel_integrity"])
     found, sources, notes = _dicom_geometry(first, frames.shape[1], frames.shape[2], headers[0][0].name)
     if "frame_time_ms" not in sources:
         times = [t for t in (_dicom_time_s(ds) for _, ds in headers) if t is not None]
@@ -330,7 +335,7 @@ def _read_dicom_folder(folder: Path, overrides: dict, photometric: str | None) -
             found["frame_time_ms"] = float(np.median(np.diff(times)) * 1000.0)
             sources["frame_time_ms"] = "AcquisitionTime/ContentTime differences"
     meta = _dicom_metadata(first, folder, [f for f, _ in headers])
-    meta.update(notes, pixel_integrity="; ".join(sorted({n["pixel_integrity"] for _, n in decoded})))
+    meta.update(notes, pixel_integrity="; ".join(sorted(integrity)))
     _photometric(_declared_photometric(first), photometric, frames, folder.name, meta)
     return _assemble(frames, found, sources, overrides, folder.name, lambda k: GEOMETRY_SOURCES[k], meta)
 
