@@ -46,7 +46,8 @@ CTA_VOXEL_SIZE_MM: Final = (0.05, 10.0)
 CTA_EXTENT_MM: Final = (20.0, 2000.0)
 #: Voxels along each axis.
 CTA_VOXELS_PER_AXIS: Final = (8, 4096)
-#: Voxels in all (2**30: 4 GiB as float32), checked on the header before any voxel is read.
+#: Voxels in all (2**30: 4 GiB as float32), checked on the header before any voxel is read; a DICOM series is
+#: decoded slice by slice into one float32 array of this size at most (and resampled into another, see below).
 CTA_MAX_VOXELS: Final = 2**30
 #: A series resampled onto a regular grid (gantry tilt, uneven gaps) may hold at most this many times the
 #: acquired voxels, checked before the grid is allocated (a tilt of 30 deg over a 200 mm stack of 0.5 mm
@@ -74,7 +75,8 @@ SLICE_ORIENTATION_TOLERANCE: Final = 1e-3
 DSA_MATRIX_PX: Final = (32, 4096)
 #: Frames of one run.
 DSA_FRAMES: Final = (1, 10000)
-#: Pixels of a run in all (frames x rows x columns; 2**30: 4 GiB as float32).
+#: Pixels of a run in all (frames x rows x columns; 2**30: 4 GiB as float32), checked on the header; the frames
+#: are decoded one at a time into one float32 array of that size (no integer copy of the whole run).
 DSA_MAX_PIXELS: Final = 2**30
 #: Positioner angles as read (deg), before they are wrapped to (-180, 180].
 ANGLE_INPUT_DEG: Final = (-360.0, 360.0)
