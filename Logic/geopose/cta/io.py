@@ -242,10 +242,11 @@ def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True
 
 def _check_hu_distribution(a: np.ndarray, lo: float, name: str) -> None:
     """Refuse a volume whose voxels lie outside :data:`~geopose.limits.CTA_PLAUSIBLE_HU` in more than
-    :data:`~geopose.limits.CTA_MAX_IMPLAUSIBLE_SHARE` of the volume. Voxels at the minimum below that range
-    are padding (outside the scan circle, e.g. -3024 HU) and not counted."""
+    :data:`~geopose.limits.CTA_MAX_IMPLAUSIBLE_SHARE` of the volume. Voxels at the minimum below that range, when
+    they are at least 1 % of the volume, are padding (outside the scan circle, e.g. -3024 HU) and not counted."""
     plo, phi = L.CTA_PLAUSIBLE_HU
     padding = int(np.count_nonzero(a == lo)) if lo < plo else 0
+    padding = padding if padding >= 0.01 * a.size else 0
     below = int(np.count_nonzero(a < plo)) - padding
     above = int(np.count_nonzero(a > phi))
     counted = a.size - padding
