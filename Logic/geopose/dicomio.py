@@ -185,7 +185,7 @@ def decode_frames(
     data = ds.PixelData
     if not isinstance(data, (bytes, bytearray)):
         raise InputError(f"{name}: the pixel data element is damaged; {_REMEDY_COPY}")
-    bits = _StoredBits(allocated, stored, signed, name)
+    bits = _StoredBits(allocated, stored, signed)
     frames = np.empty((n, rows, cols), dtype=np.float32)
     if syntax in UNCOMPRESSED:
         raw = _native(bytes(data), n, rows, cols, allocated, signed, syntax == U.ExplicitVRBigEndian, name)
@@ -214,7 +214,7 @@ def decode_frames(
 class _StoredBits:
     """BitsAllocated / BitsStored / PixelRepresentation of an image and the stored-value range they allow."""
 
-    def __init__(self, allocated: int, stored: int, signed: int, name: str) -> None:
+    def __init__(self, allocated: int, stored: int, signed: int) -> None:
         self.allocated, self.stored, self.signed = allocated, stored, signed
         self.lo, self.hi = (-(1 << (stored - 1)), (1 << (stored - 1)) - 1) if signed else (0, (1 << stored) - 1)
 
@@ -240,16 +240,15 @@ class _StoredBits:
 def _padding_pixels(ds: pydicom.Dataset, frames: np.ndarray, bits: _StoredBits, name: str) -> tuple[np.ndarray, tuple[int, int]] | None:
     """The pixels (mask) whose stored value (``frames`` before rescale) is PixelPaddingValue or lies within
     PixelPaddingValue..PixelPaddingRangeLimit, and that stored range; ``None`` without the tag."""
+    if raw_tag(ds, "PixelPaddingValue") is None:
+        return None
     values = []
     for keyword in ("PixelPaddingValue", "PixelPaddingRangeLimit"):
-        value = raw_tag(ds, keyword)
-        if value is not None:
+        if raw_tag(ds, keyword) is not None:
             v = int_tag(ds, keyword, name)
-            if bits.signed and v > bits.hi and v < 1 << bits.allocated:  # read as unsigned (ambiguous VR US/SS)
+            if bits.signed and bits.hi < v < 1 << bits.allocated:  # read as unsigned (ambiguous VR US/SS)
                 v -= 1 << bits.allocated
             values.append(v)
-    if "PixelPaddingValue" not in ds or not values:
-        return None
     lo, hi = min(values), max(values)
     mask = (frames >= lo) & (frames <= hi)
     return mask, (lo, hi)

@@ -170,17 +170,6 @@ def _regularise(
     return out, dz, (i0, j0)
 
 
-def shape_of(headers: list[tuple[Path, pydicom.Dataset]]) -> tuple[int, int]:
-    """(rows, columns) of a series' slices (checked equal for all by :func:`_geometry`)."""
-    first = headers[0][1]
-    return int(first.get("Rows", 0)), int(first.get("Columns", 0))
-
-
-def _decoded_slice(f: Path, check) -> tuple[np.ndarray, dict]:
-    frames, notes = decode_frames(read_dataset(f), f.name, check, padding_value=PADDING_HU)
-    return frames[0], notes
-
-
 def _ids(ds: pydicom.Dataset) -> dict[str, str]:
     """PatientID, StudyInstanceUID and SeriesInstanceUID of a slice, those present."""
     return {k: str(ds.get(k)) for k in ("PatientID", "StudyInstanceUID", "SeriesInstanceUID") if ds.get(k) not in (None, "")}
@@ -216,19 +205,21 @@ def read_dicom_series(folder: Path, series_uid: str | None) -> tuple[np.ndarray,
     offsets = np.stack([rel @ row, rel @ col], axis=1)  # in-plane offset of each slice origin (mm)
     tilted = bool(np.abs(offsets).max() > TILT_OFFSET_MM)
 
-    def check(shape: tuple[int, int, int]) -> None:
-        if not (lo <= shape[1] <= hi and lo <= shape[2] <= hi) or shape[0] != 1:
-            raise InputError(f"{folder.name}: a slice declares {shape[0]} frame(s) of {shape[1]} x {shape[2]} pixels: a CT slice "
-                             f"is one frame of {lo}..{hi} pixels per side")
+    rows, cols = int(headers[0][1].get("Rows", 0)), int(headers[0][1].get("Columns", 0))  # all equal (_geometry)
 
-    rows, cols = shape_of(headers)
+    def check(shape: tuple[int, int, int]) -> None:
+        if not (lo <= shape[1] <= hi and lo <= shape[2] <= hi) or shape != (1, rows, cols):
+            raise InputError(f"{folder.name}: a slice declares {shape[0]} frame(s) of {shape[1]} x {shape[2]} pixels: a CT slice "
+                             f"of this series is one frame of {rows} x {cols} pixels ({lo}..{hi} per side)")
+
     if len(headers) * rows * cols > L.CTA_MAX_VOXELS:
         raise InputError(f"{folder.name}: {len(headers)} slices of {rows} x {cols} pixels are more than the {L.CTA_MAX_VOXELS} "
                          "voxels a CTA may have here; give a smaller series (or crop it to the head)")
     planes = np.empty((len(headers), rows, cols), dtype=np.float32)
     padded = 0
     for k, (f, _) in enumerate(headers):
-        planes[k], slice_notes = _decoded_slice(f, check)
+        frames, slice_notes = decode_frames(read_dataset(f), f.name, check, padding_value=PADDING_HU)
+        planes[k] = frames[0]
         padded += slice_notes.get("pixel_padding", {}).get("pixels", 0)
     ijk_to_lps = np.eye(4)
     notes: dict = {"slice_geometry": {"slices": len(headers), "median_gap_mm": float(step)}, "dicom_ids": _ids(headers[0][1])}
