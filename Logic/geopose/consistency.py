@@ -47,7 +47,7 @@ def check_inputs_belong_together(cta: Volume, runs: dict[str, DSARun], *, allow_
         if va is None or vb is None:
             unchecked.append(f"{key} {a}/{b}")
         elif va != vb:
-            mismatches.append(f"the {a.upper()} {'CTA' if a == 'cta' else 'run'} has {key} {va!r}, the {b.upper()} run {vb!r}")
+            mismatches.append(f"the {'CTA' if a == 'cta' else a.upper() + ' run'} has {key} {va!r}, the {b.upper()} run {vb!r}")
     if mismatches and not allow_id_mismatch:
         raise InputError(f"the inputs are not of one patient and study: {'; '.join(mismatches)}. Give the runs and the CTA of "
                          f"one patient; for anonymised data whose identifiers differ, confirm with {ALLOW_ID_MISMATCH_OPTION}")

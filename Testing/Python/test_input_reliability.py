@@ -305,7 +305,7 @@ def test_cta_series_of_another_patient_is_refused(case, capsys):
     hu, inside = head_hu((24, 40, 40))
     cta = write_ct_series(case["root"] / "ct", hu, inside, "uncompressed", patient_id="SOMEONE-ELSE")
     code, err, seconds = _register(capsys, cta, case["pa"], case["lat"], case["root"] / "out")
-    _refused(code, err, seconds, "the CTA CTA has PatientID" if False else "CTA", "'SOMEONE-ELSE'")
+    _refused(code, err, seconds, "the CTA has PatientID 'SOMEONE-ELSE', the PA run 'GEOPOSE-PHANTOM'", "--allow-id-mismatch")
 
 
 def test_override_accepts_differing_ids_and_records_it(case):
