@@ -41,14 +41,14 @@ test: setup $(VENV39)/.installed $(VENV39_SLICER)/.installed
 test-slow: setup
 	GEOPOSE_SLOW=1 $(BIN)/python -m pytest -q
 
-# Input fuzz suite: 10,000 seeded mutations of every input kind (docs/fuzz.md); the default
+# Input fuzz suite: 10,000 seeded mutations of every input kind and 1,000 CLI-level situations (docs/fuzz.md); the default
 # test run does 600 of them (Testing/Python/test_fuzz.py).
 FUZZ_CASES ?= 10000
 fuzz: setup
 	nice -n 10 $(BIN)/python Testing/fuzz/run.py --cases $(FUZZ_CASES) --seed 0 --workers 2 --doc docs/fuzz.md
 
 clean:
-	rm -rf $(VENV) $(VENV39) $(VENV39_SLICER) demo_out
+	rm -rf $(VENV) $(VENV39) $(VENV39_SLICER) demo_out demo_out_case
 
 # Renderer benchmark against DiffDRR 0.6.1, which lives in its own environment
 # (.venv-diffdrr, built once by benchmarks/setup_diffdrr_env.sh). Tables go to

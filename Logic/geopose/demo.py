@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    case = out / "case"
+    case = out.with_name(out.name + "_case")  # beside the results: an --out folder may hold no input
     print(f"[1/2] generating phantom subject {args.seed} in {case}")
     timings = write_phantom(args.seed, case)
     print("      " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))

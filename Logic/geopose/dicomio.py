@@ -27,6 +27,7 @@ from pydicom import uid as U
 
 from . import limits as L
 from .errors import InputError
+from .inputpaths import read_bounded
 
 __all__ = ["read_dataset", "decode_frames", "is_image_storage", "is_non_image", "looks_like_dicom", "int_tag", "float_tag",
            "floats_tag", "raw_tag"]
@@ -43,11 +44,7 @@ _REMEDY_DECOMPRESS = "decompress it (e.g. gdcmconv --raw) and load the uncompres
 def read_dataset(path: Path, *, stop_before_pixels: bool = False) -> pydicom.Dataset:
     """The dataset of ``path`` with every top-level element parsed, or an :class:`InputError`
     ("not a DICOM file" / "damaged") naming the file."""
-    size = path.stat().st_size
-    if size > L.MAX_DICOM_FILE_BYTES:
-        raise InputError(f"{path.name} has {size} bytes, more than the {L.MAX_DICOM_FILE_BYTES} a DICOM file may have here: "
-                         "export the run or series in smaller files")
-    data = path.read_bytes()
+    data = read_bounded(path, L.MAX_DICOM_FILE_BYTES, "DICOM file", "export the run or series in smaller files")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -146,11 +143,17 @@ def float_tag(ds: pydicom.Dataset, keyword: str, name: str) -> float | None:
 
 
 def decode_frames(
-    ds: pydicom.Dataset, name: str, check_shape: Callable[[tuple[int, int, int]], None]
+    ds: pydicom.Dataset, name: str, check_shape: Callable[[tuple[int, int, int]], None], *, padding_value: float | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Frames ``(T, H, W)`` float32 with the linear modality LUT (RescaleSlope/Intercept) applied,
-    and notes (``pixel_integrity``). ``check_shape((T, H, W))`` bounds the declared matrix before
-    anything is decoded."""
+    and notes (``pixel_integrity``; ``pixel_padding`` when padding was found). ``check_shape((T, H, W))``
+    bounds the declared matrix before anything is decoded; the float32 frames are then the one
+    allocation of the run's size (compressed frames are decoded one at a time into it).
+
+    Signed data (PixelRepresentation 1) are read as two's complement of the stored bits whatever type a
+    decoder returns (JPEG and JPEG-LS decoders return the unsigned bit pattern). With ``padding_value``
+    (output units, e.g. air in HU), pixels whose stored value is PixelPaddingValue (or within
+    PixelPaddingValue..PixelPaddingRangeLimit) get that value: they lie outside the scanned field."""
     if "PixelData" not in ds:
         if is_image_storage(ds):
             raise InputError(f"{name} declares an image but holds no pixel data: the file is truncated or damaged; {_REMEDY_COPY}")
@@ -182,34 +185,73 @@ def decode_frames(
     data = ds.PixelData
     if not isinstance(data, (bytes, bytearray)):
         raise InputError(f"{name}: the pixel data element is damaged; {_REMEDY_COPY}")
+    bits = _StoredBits(allocated, stored, signed)
+    frames = np.empty((n, rows, cols), dtype=np.float32)
     if syntax in UNCOMPRESSED:
-        raw, integrity = _native(bytes(data), n, rows, cols, allocated, signed, syntax == U.ExplicitVRBigEndian, name), "uncompressed: byte count checked"
+        raw = _native(bytes(data), n, rows, cols, allocated, signed, syntax == U.ExplicitVRBigEndian, name)
+        bits.check(raw, name)
+        frames[...] = raw
+        integrity = "uncompressed: byte count checked"
     elif syntax in JPEG_SYNTAXES or syntax in J2K_SYNTAXES or syntax == U.RLELossless:
-        raw, integrity = _encapsulated(bytes(data), syntax, n, rows, cols, allocated, stored, signed, name)
+        integrity = _encapsulated(bytes(data), syntax, frames, bits, name)
     else:
         raise InputError(f"{name} uses transfer syntax {getattr(syntax, 'name', syntax)}, which this reader does not decode: {_REMEDY_DECOMPRESS}")
-    values = _stored_values(raw, allocated, stored, signed, name)
-    frames = values.astype(np.float32)
+    notes: dict = {"pixel_integrity": integrity}
+    padding = _padding_pixels(ds, frames, bits, name) if padding_value is not None else None
     slope, intercept = float_tag(ds, "RescaleSlope", name), float_tag(ds, "RescaleIntercept", name)
     if slope is not None or intercept is not None:
-        frames = frames * np.float32(1.0 if slope is None else slope) + np.float32(intercept or 0.0)
-        if not np.all(np.isfinite(frames)):
+        frames *= np.float32(1.0 if slope is None else slope)
+        frames += np.float32(intercept or 0.0)
+        if not np.isfinite(frames).all():
             raise InputError(f"{name}: RescaleSlope {slope} / RescaleIntercept {intercept} make the pixel values overflow; {_REMEDY_COPY}")
-    return frames, {"pixel_integrity": integrity}
+    if padding is not None:
+        mask, (lo, hi) = padding
+        frames[mask] = np.float32(padding_value)
+        notes["pixel_padding"] = {"stored_values": [lo, hi], "pixels": int(mask.sum()), "set_to": float(padding_value)}
+    return frames, notes
 
 
-def _stored_values(values: np.ndarray, allocated: int, stored: int, signed: int, name: str) -> np.ndarray:
-    """The stored values as int64; values outside the range BitsStored allows are an :class:`InputError`
-    (the header or the data are damaged: masking them would silently change the image)."""
-    v = values.astype(np.int64)
-    if stored < allocated:
-        lo, hi = (-(1 << (stored - 1)), (1 << (stored - 1)) - 1) if signed else (0, (1 << stored) - 1)
-        if signed and v.min() >= 0 and v.max() >= 1 << (allocated - 1):  # unsigned-typed decoder output
-            v = np.where(v >= 1 << (allocated - 1), v - (1 << allocated), v)
-        if v.min() < lo or v.max() > hi:
-            raise InputError(f"{name}: pixel values reach {int(v.min())}..{int(v.max())}, outside the {lo}..{hi} that BitsStored "
-                             f"{stored} allows: the header or the pixel data are damaged; {_REMEDY_COPY}")
-    return v
+class _StoredBits:
+    """BitsAllocated / BitsStored / PixelRepresentation of an image and the stored-value range they allow."""
+
+    def __init__(self, allocated: int, stored: int, signed: int) -> None:
+        self.allocated, self.stored, self.signed = allocated, stored, signed
+        self.lo, self.hi = (-(1 << (stored - 1)), (1 << (stored - 1)) - 1) if signed else (0, (1 << stored) - 1)
+
+    def check(self, values: np.ndarray, where: str) -> None:
+        """Values outside the range BitsStored allows are an :class:`InputError` (the header or the data are
+        damaged: masking them would silently change the image)."""
+        lo, hi = int(values.min()), int(values.max())
+        if lo < self.lo or hi > self.hi:
+            raise InputError(f"{where}: pixel values reach {lo}..{hi}, outside the {self.lo}..{self.hi} that BitsStored "
+                             f"{self.stored}{' (signed)' if self.signed else ''} allows: the header or the pixel data are damaged; "
+                             f"{_REMEDY_COPY}")
+
+    def signed_values(self, array: np.ndarray, precision: int) -> np.ndarray:
+        """A decoder's output as stored values: an unsigned bit pattern of a signed image is read as two's
+        complement of its ``precision`` bits (the stream's sample precision)."""
+        if not self.signed or array.dtype.kind != "u":
+            return array
+        values = array.astype(np.int64)
+        values[values >= 1 << (precision - 1)] -= 1 << precision
+        return values
+
+
+def _padding_pixels(ds: pydicom.Dataset, frames: np.ndarray, bits: _StoredBits, name: str) -> tuple[np.ndarray, tuple[int, int]] | None:
+    """The pixels (mask) whose stored value (``frames`` before rescale) is PixelPaddingValue or lies within
+    PixelPaddingValue..PixelPaddingRangeLimit, and that stored range; ``None`` without the tag."""
+    if raw_tag(ds, "PixelPaddingValue") is None:
+        return None
+    values = []
+    for keyword in ("PixelPaddingValue", "PixelPaddingRangeLimit"):
+        if raw_tag(ds, keyword) is not None:
+            v = int_tag(ds, keyword, name)
+            if bits.signed and bits.hi < v < 1 << bits.allocated:  # read as unsigned (ambiguous VR US/SS)
+                v -= 1 << bits.allocated
+            values.append(v)
+    lo, hi = min(values), max(values)
+    mask = (frames >= lo) & (frames <= hi)
+    return mask, (lo, hi)
 
 
 def _native(data: bytes, n: int, rows: int, cols: int, allocated: int, signed: int, big: bool, name: str) -> np.ndarray:
@@ -224,9 +266,10 @@ def _native(data: bytes, n: int, rows: int, cols: int, allocated: int, signed: i
     return np.frombuffer(data[:expected], dtype=dtype).reshape(n, rows, cols)
 
 
-def _encapsulated(
-    data: bytes, syntax: U.UID, n: int, rows: int, cols: int, allocated: int, stored: int, signed: int, name: str
-) -> tuple[np.ndarray, str]:
+def _encapsulated(data: bytes, syntax: U.UID, out: np.ndarray, bits: _StoredBits, name: str) -> str:
+    """Decode every compressed frame into ``out`` ``(n, rows, cols)``, one frame at a time, each checked against
+    the stored bits; returns which integrity check the frames got."""
+    n, rows, cols = out.shape
     try:
         frames = []
         for frame in pydicom.encaps.generate_frames(data, number_of_frames=n):
@@ -238,18 +281,19 @@ def _encapsulated(
     if len(frames) != n:
         raise InputError(f"{name} holds {len(frames)} compressed frame(s) but NumberOfFrames says {n}: the file is truncated "
                          f"or damaged; {_REMEDY_COPY}")
-    out = np.empty((n, rows, cols), dtype=np.int64)
     checks = set()
     for k, frame in enumerate(frames):
         where = f"{name}: frame {k + 1} of {n} ({syntax.name})"
         if syntax == U.RLELossless:
-            out[k], check = _rle(frame, rows, cols, allocated, signed, where)
+            values, check = _rle(frame, rows, cols, bits.allocated, bits.signed, where)
         elif syntax in JPEG_SYNTAXES:
-            out[k], check = _jpeg(frame, rows, cols, allocated, where)
+            values, check = _jpeg(frame, rows, cols, bits, where)
         else:
-            out[k], check = _j2k(frame, syntax, rows, cols, allocated, stored, signed, where)
+            values, check = _j2k(frame, syntax, rows, cols, bits, where)
+        bits.check(values, where)
+        out[k] = values
         checks.add(check)
-    return out, "; ".join(sorted(checks))
+    return "; ".join(sorted(checks))
 
 
 def _decoder_failure(where: str, exc: BaseException) -> InputError:
@@ -272,12 +316,13 @@ def _checked_shape(array: np.ndarray, rows: int, cols: int, where: str) -> np.nd
 
 
 def _decode_checked(
-    kind: str, module: str, frame: bytes, header: tuple[int, int, int, int], rows: int, cols: int, allocated: int,
+    kind: str, module: str, frame: bytes, header: tuple[int, int, int, int], rows: int, cols: int, bits: _StoredBits,
     where: str,
 ) -> np.ndarray:
     """Decode one compressed frame with a pylibjpeg plugin after checking its own header (rows, columns,
     components, precision) against the DICOM header; decoder failures become InputError."""
     h, w, components, precision = header
+    allocated = bits.allocated
     if (h, w) != (rows, cols) or components != 1 or precision > allocated:
         raise InputError(f"{where}: the {kind} header says {h} x {w} x {components} component(s) at {precision} bits but "
                          f"the DICOM header {rows} x {cols}, 1 component, {allocated} bits allocated: the stream or the "
@@ -368,10 +413,10 @@ def _jpeg_frame_header(frame: bytes, where: str) -> tuple[int, int, int, int]:
     raise InputError(f"{where} has no readable JPEG frame header (SOF): the stream is damaged; {_REMEDY_COPY}")
 
 
-def _jpeg(frame: bytes, rows: int, cols: int, allocated: int, where: str) -> tuple[np.ndarray, str]:
+def _jpeg(frame: bytes, rows: int, cols: int, bits: _StoredBits, where: str) -> tuple[np.ndarray, str]:
     precision, h, w, components = _jpeg_frame_header(frame, where)
-    array = _decode_checked("JPEG", "libjpeg", frame, (h, w, components, precision), rows, cols, allocated, where)
-    return array, "JPEG: headers and complete decoding checked"
+    array = _decode_checked("JPEG", "libjpeg", frame, (h, w, components, precision), rows, cols, bits, where)
+    return bits.signed_values(array, precision), "JPEG: headers and complete decoding checked"
 
 
 # ------------------------------------------------------------------- JPEG 2000
@@ -423,17 +468,14 @@ def _strip_comments(cs: bytes) -> bytes:
 _OPENJPEG_LOSSLESS_COD = bytes([0, 0, 0, 1, 0, 5, 4, 4, 0, 1])
 
 
-def _j2k(
-    frame: bytes, syntax: U.UID, rows: int, cols: int, allocated: int, stored: int, signed: int, where: str
-) -> tuple[np.ndarray, str]:
+def _j2k(frame: bytes, syntax: U.UID, rows: int, cols: int, bits: _StoredBits, where: str) -> tuple[np.ndarray, str]:
     cs = _j2k_codestream(frame, where)
     siz = _j2k_segments(cs).get(0x51, b"")
     if len(siz) < 39:
         raise InputError(f"{where}: the JPEG 2000 image header (SIZ) is missing or truncated; {_REMEDY_COPY}")
     _, xsiz, ysiz, xo, yo, _, _, _, _, csiz = struct.unpack(">HIIIIIIIIH", siz[:36])
     precision = (siz[36] & 0x7F) + 1
-    array = _decode_checked("JPEG 2000", "openjpeg", frame, (ysiz - yo, xsiz - xo, csiz, precision), rows, cols,
-                            allocated, where)
+    array = _decode_checked("JPEG 2000", "openjpeg", frame, (ysiz - yo, xsiz - xo, csiz, precision), rows, cols, bits, where)
     segments = _j2k_segments(cs)
     verifiable = (
         syntax == U.JPEG2000Lossless
@@ -441,7 +483,7 @@ def _j2k(
         and b"OpenJPEG" in segments.get(0x64, b"")
     )
     if not verifiable:
-        return array, "JPEG 2000: headers and complete decoding checked (stream not re-encodable here)"
+        return bits.signed_values(array, precision), "JPEG 2000: headers and complete decoding checked (stream not re-encodable here)"
     try:
         again = _plugin("openjpeg", where).encode(np.ascontiguousarray(array), bits_stored=precision)
     except Exception as exc:
@@ -449,4 +491,4 @@ def _j2k(
     if _strip_comments(bytes(again)) != _strip_comments(cs).rstrip(b"\x00"):
         raise InputError(f"{where} does not re-encode to itself: the JPEG 2000 stream is damaged (or was written by another "
                          f"OpenJPEG version); {_REMEDY_COPY}, or {_REMEDY_DECOMPRESS} after checking the images")
-    return array, "JPEG 2000 Lossless: re-encoded and compared byte for byte"
+    return bits.signed_values(array, precision), "JPEG 2000 Lossless: re-encoded and compared byte for byte"

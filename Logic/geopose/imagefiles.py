@@ -24,6 +24,7 @@ import numpy as np
 
 from . import limits as L
 from .errors import InputError
+from .inputpaths import regular_file
 
 __all__ = ["DeclaredImage", "check_image_file", "image_extension", "IMAGE_EXTENSIONS"]
 
@@ -43,6 +44,8 @@ class DeclaredImage:
     dtype: np.dtype | None
     files: list[Path]
     checks: list[str] = field(default_factory=list)
+    #: NIfTI only: the voxel -> RAS (mm) affines the header sets, by name ("qform", "sform"), those with a nonzero code.
+    xforms: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def image_extension(path: Path) -> str:
@@ -54,6 +57,7 @@ def check_image_file(path: Path, max_voxels: int) -> DeclaredImage:
     """Parse ``path``'s header, refuse more than ``max_voxels`` voxels, and check its voxel data
     (byte count; finite values for float types). Returns the declared grid and the files read."""
     ext = image_extension(path)
+    regular_file(path, "image file")
     if path.stat().st_size > L.MAX_IMAGE_FILE_BYTES:
         raise InputError(f"{path.name} has {path.stat().st_size} bytes, more than the {L.MAX_IMAGE_FILE_BYTES} read here")
     if ext in (".nii", ".nii.gz"):
@@ -114,8 +118,9 @@ def _read_chunks(stream: BinaryIO, limit: int) -> Iterator[bytes]:
 
 def _file_chunks(files: list[Path], skip: Callable[[Path], int], opener: Callable[[Path], BinaryIO], limit: int) -> Iterator[bytes]:
     for f in files:
-        if not f.is_file():
+        if not f.exists():
             raise InputError(f"data file {f} named by the header does not exist: keep the data files next to the header")
+        regular_file(f, "data file named by the header")
         with opener(f) as stream:
             offset = skip(f)
             if offset:
@@ -179,7 +184,37 @@ def _nifti(path: Path, max_voxels: int) -> DeclaredImage:
     expected = math.prod(shape) * bits // 8
     offset = int(vox_offset)
     _check_block(path, _file_chunks([path], lambda _: offset, opener, expected), expected, dtype, "voxel data")
-    return DeclaredImage(shape, dtype, [path], ["NIfTI: byte count and finite values checked"])
+    return DeclaredImage(shape, dtype, [path], ["NIfTI: byte count and finite values checked"], _nifti_xforms(head, endian))
+
+
+def _nifti_xforms(head: bytes, endian: str) -> dict[str, np.ndarray]:
+    """The qform (quaternion, pixdim, qfac) and sform (srow) affines, voxel -> RAS mm, of a NIfTI-1 or -2 header,
+    those whose code is nonzero."""
+    if struct.unpack(endian + "i", head[:4])[0] == 348:
+        f, pixdim = "f", struct.unpack(endian + "8f", head[76:108])
+        qcode, scode = struct.unpack(endian + "hh", head[252:256])
+        quat = struct.unpack(endian + "6f", head[256:280])
+        srows = struct.unpack(endian + "12f", head[280:328])
+    else:
+        f, pixdim = "d", struct.unpack(endian + "8d", head[104:168])
+        qcode, scode = struct.unpack(endian + "ii", head[344:352])
+        quat = struct.unpack(endian + "6d", head[352:400])
+        srows = struct.unpack(endian + "12d", head[400:496])
+    out: dict[str, np.ndarray] = {}
+    if qcode > 0:
+        b, c, d = quat[:3]
+        a = math.sqrt(max(0.0, 1.0 - (b * b + c * c + d * d)))
+        rot = np.array([[a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],
+                        [2 * (b * c + a * d), a * a + c * c - b * b - d * d, 2 * (c * d - a * b)],
+                        [2 * (b * d - a * c), 2 * (c * d + a * b), a * a + d * d - c * c - b * b]])
+        qfac = -1.0 if pixdim[0] < 0 else 1.0
+        affine = np.eye(4)
+        affine[:3, :3] = rot @ np.diag([pixdim[1], pixdim[2], qfac * pixdim[3]])
+        affine[:3, 3] = quat[3:]
+        out["qform"] = affine
+    if scode > 0:
+        out["sform"] = np.vstack([np.reshape(srows, (3, 4)), [0, 0, 0, 1]])
+    return {k: v for k, v in out.items() if np.isfinite(v).all()}
 
 
 # ------------------------------------------------------------------------ NRRD
@@ -222,10 +257,12 @@ def _int_list(path: Path, key: str, text: str) -> list[int]:
 
 
 def _require_files(header: Path, files: list[Path]) -> None:
-    missing = [f.name for f in files if not f.is_file()]
+    missing = [f.name for f in files if not f.exists()]
     if missing:
         raise InputError(f"{header.name} names data file(s) that do not exist ({', '.join(missing[:3])}): keep the data files "
                          "next to the header, or check its data-file field")
+    for f in files:
+        regular_file(f, f"data file named by {header.name}")
 
 
 def _check_counts(path: Path, fields: dict[str, str], counts: dict[str, int]) -> None:

@@ -8,6 +8,7 @@ from typing import Any
 
 from . import limits as L
 from .errors import InputError
+from .inputpaths import read_bounded
 
 __all__ = ["read_json"]
 
@@ -26,11 +27,9 @@ def _depth(value: Any) -> int:
 def read_json(path: Path, remedy: str) -> Any:
     """The parsed content of ``path``; a file too large, not UTF-8 JSON or nested deeper than
     :data:`~geopose.limits.MAX_JSON_DEPTH` is an :class:`InputError` ending in ``remedy``."""
-    size = path.stat().st_size
-    if size > L.MAX_JSON_BYTES:
-        raise InputError(f"{path.name} has {size} bytes, more than the {L.MAX_JSON_BYTES} a JSON file may have here; {remedy}")
+    data = read_bounded(path, L.MAX_JSON_BYTES, "JSON file", remedy)
     try:
-        value = json.loads(path.read_bytes().decode("utf-8"))
+        value = json.loads(data.decode("utf-8"))
     except UnicodeDecodeError:
         raise InputError(f"{path.name} is not UTF-8 text; {remedy}") from None
     except json.JSONDecodeError as exc:

@@ -15,7 +15,8 @@ from .errors import InputError
 
 __all__ = [
     "REFINE_STEPS", "ITERATIONS", "TTO_PX", "RENDER_PX", "WORK_SPACING_MM", "CLIP_PERCENTILE",
-    "CTA_VOXEL_SIZE_MM", "CTA_EXTENT_MM", "CTA_VOXELS_PER_AXIS", "CTA_MAX_VOXELS", "CTA_AIR_MAX_HU", "CTA_MIN_SPAN_HU", "HU_OFFSET",
+    "CTA_VOXEL_SIZE_MM", "CTA_EXTENT_MM", "CTA_VOXELS_PER_AXIS", "CTA_MAX_VOXELS", "CTA_RESAMPLE_MAX_GROWTH", "CTA_PLAUSIBLE_HU",
+    "CTA_MAX_IMPLAUSIBLE_SHARE", "CTA_AIR_MAX_HU", "CTA_MIN_SPAN_HU", "HU_OFFSET",
     "SLICE_GAP_TOLERANCE", "SLICE_GAP_TOLERANCE_MM", "SLICE_ORIENTATION_TOLERANCE",
     "DSA_MATRIX_PX", "DSA_FRAMES", "DSA_MAX_PIXELS", "ANGLE_INPUT_DEG", "PRIMARY_DEG", "SECONDARY_DEG",
     "SID_MM", "SOD_MM", "PIXEL_SPACING_MM", "PRINCIPAL_OFFSET_MM", "FRAME_TIME_MS",
@@ -45,8 +46,17 @@ CTA_VOXEL_SIZE_MM: Final = (0.05, 10.0)
 CTA_EXTENT_MM: Final = (20.0, 2000.0)
 #: Voxels along each axis.
 CTA_VOXELS_PER_AXIS: Final = (8, 4096)
-#: Voxels in all (2**30: 4 GiB as float32), checked on the header before any voxel is read.
+#: Voxels in all (2**30: 4 GiB as float32), checked on the header before any voxel is read; a DICOM series is
+#: decoded slice by slice into one float32 array of this size at most (and resampled into another, see below).
 CTA_MAX_VOXELS: Final = 2**30
+#: A series resampled onto a regular grid (gantry tilt, uneven gaps) may hold at most this many times the
+#: acquired voxels, checked before the grid is allocated (a tilt of 30 deg over a 200 mm stack of 0.5 mm
+#: pixels grows a slice by about 1.4 times, uneven gaps add slices up to the ratio of the gaps).
+CTA_RESAMPLE_MAX_GROWTH: Final = 4
+#: HU a CT voxel can hold (air with noise .. dense bone and contrast); padding is not counted.
+CTA_PLAUSIBLE_HU: Final = (-1100.0, 4000.0)
+#: Largest share of voxels (0..1) outside :data:`CTA_PLAUSIBLE_HU` in a CT read right (metal streaks, noise).
+CTA_MAX_IMPLAUSIBLE_SHARE: Final = 0.05
 #: A CT of a head in HU contains air: its minimum lies below this value (HU).
 CTA_AIR_MAX_HU: Final = -200.0
 #: A value span (HU) this small suggests a normalised (e.g. 0..1) image, not HU.
@@ -65,7 +75,8 @@ SLICE_ORIENTATION_TOLERANCE: Final = 1e-3
 DSA_MATRIX_PX: Final = (32, 4096)
 #: Frames of one run.
 DSA_FRAMES: Final = (1, 10000)
-#: Pixels of a run in all (frames x rows x columns; 2**30: 4 GiB as float32).
+#: Pixels of a run in all (frames x rows x columns; 2**30: 4 GiB as float32), checked on the header; the frames
+#: are decoded one at a time into one float32 array of that size (no integer copy of the whole run).
 DSA_MAX_PIXELS: Final = 2**30
 #: Positioner angles as read (deg), before they are wrapped to (-180, 180].
 ANGLE_INPUT_DEG: Final = (-360.0, 360.0)

@@ -1,7 +1,8 @@
 """Atomic result folders: every output lands whole or not at all, the record last.
 
 :class:`OutputFolder` is opened before any work starts, so an unusable ``--out`` (an
-existing file, ``/dev/full``, a read-only or full folder) is refused at once. It takes a
+existing file, ``/dev/full``, a read-only or full folder, the filesystem root, a folder that is or
+holds one of the run's inputs) is refused at once, before anything in it is touched. It takes a
 lock (``.geopose.lock``; a second run into the same folder is refused while the first
 holds it), clears the previous run's results (the completion marker first), and writes
 each file to a temporary name in the same folder, flushed to disk, then renames it into
@@ -18,11 +19,11 @@ import os
 import tempfile
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from .errors import InputError
 
-__all__ = ["OutputFolder", "LOCK_NAME", "RECORD_NAME", "TEMP_PREFIX", "atomic_write"]
+__all__ = ["OutputFolder", "LOCK_NAME", "RECORD_NAME", "TEMP_PREFIX", "atomic_write", "check_holds_no_input"]
 
 LOCK_NAME = ".geopose.lock"
 RECORD_NAME = "result.json"
@@ -68,6 +69,20 @@ def atomic_write(path: Path, write: Callable[[Path], Any]) -> Path:
     return path
 
 
+def check_holds_no_input(folder: Path, inputs: Mapping[str, Path]) -> None:
+    """Refuse an output folder that is the filesystem root, or is or contains any of ``inputs`` (label -> file
+    or folder; symlinks resolved): clearing or writing it could delete or replace an input."""
+    where = folder.resolve()
+    if where == Path(where.anchor):
+        raise InputError(f"--out {folder} is the filesystem root: choose a folder of its own for the results")
+    for label, path in inputs.items():
+        target = path.resolve()
+        if target == where or where in target.parents:
+            what = "is" if target == where else "contains"
+            raise InputError(f"--out {folder} {what} the input {path} ({label}): the run's outputs could replace or delete it; "
+                             "choose an --out folder that holds none of the inputs")
+
+
 class _Lock:
     """An exclusive lock on ``folder/.geopose.lock``, released when the process ends (flock / msvcrt)."""
 
@@ -108,8 +123,10 @@ class OutputFolder:
     :meth:`commit` writes the record last, with ``outputs`` = the SHA-256 of each file written.
     """
 
-    def __init__(self, folder: str | os.PathLike, names: tuple[str, ...] = (), record_name: str = RECORD_NAME) -> None:
+    def __init__(self, folder: str | os.PathLike, names: tuple[str, ...] = (), record_name: str = RECORD_NAME,
+                 inputs: Mapping[str, str | os.PathLike] | None = None) -> None:
         self.folder = Path(folder)
+        self.inputs = {label: Path(p) for label, p in (inputs or {}).items() if p is not None}
         self.record_name = record_name
         self.names = tuple(names)
         self.written: dict[str, str] = {}
@@ -123,8 +140,9 @@ class OutputFolder:
         self.close()
 
     def open(self) -> None:
-        """Check that the folder can be written, lock it and clear the previous results."""
+        """Check that the folder can be written and holds no input, lock it and clear the previous results."""
         folder = self.folder
+        check_holds_no_input(folder, self.inputs)
         if folder.exists() and not folder.is_dir():
             raise InputError(f"--out {folder} exists and is not a folder: choose a folder (it is created if missing)")
         try:

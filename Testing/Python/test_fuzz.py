@@ -18,6 +18,7 @@ sys.path.insert(0, str(FUZZ))
 import harness  # noqa: E402
 import run as fuzz_run  # noqa: E402
 import targets  # noqa: E402
+import cli_targets  # noqa: E402
 
 #: Cases of the default run (about 15 s on 2 cores).
 DEFAULT_CASES = 600
@@ -45,6 +46,23 @@ def test_clean_errors_are_one_line(report: harness.Report):
     for r in report.results:
         if r.outcome == "clean error":
             assert "\n" not in r.detail and "Traceback" not in r.detail, r.detail
+
+
+#: CLI-level cases of the default run (``geopose register`` situations; about 20 s on 2 cores).
+DEFAULT_CLI_CASES = 40
+
+
+def test_cli_level_cases_are_refused_cleanly_or_read_faithfully():
+    """Out-folder collisions, special files, cross-input mismatches, misdeclared CT: exit 2, one line, inputs
+    byte-identical; signed CT encodings read as pydicom and GDCM read them."""
+    report = fuzz_run.fuzz(DEFAULT_CLI_CASES, seed=2026, workers=2, timeout_s=60.0, memory_bytes=2 << 30, suite="cli")
+    failures = report.failures()
+    assert not failures, "\n".join(f"case {r.index} {r.target} {r.mutation}: {r.outcome}: {r.detail[-600:]}" for r in failures[:10])
+    counts = report.counts()
+    assert set(counts) == set(cli_targets.CLI_TARGETS)
+    for target in ("out_collision", "special_file", "mismatch"):
+        assert counts[target]["clean error"] == sum(counts[target].values()), (target, counts[target])
+    assert counts["ct_encoding"]["accepted, faithful"] == sum(counts["ct_encoding"].values())
 
 
 def test_runs_are_reproducible():

@@ -26,11 +26,14 @@ import pydicom
 from .. import limits as L
 from ..dicomio import decode_frames, floats_tag, is_non_image, looks_like_dicom, read_dataset
 from ..errors import InputError
+from ..inputpaths import folder_files
 
 __all__ = ["read_dicom_series"]
 
 #: In-plane offset (mm) between slice origins beyond which a series counts as tilted.
 TILT_OFFSET_MM = 0.01
+#: HU given to padding pixels (PixelPaddingValue: outside the scanned field): air.
+PADDING_HU = -1024.0
 
 
 def _series_headers(folder: Path) -> dict[str, list[tuple[Path, pydicom.Dataset]]]:
@@ -38,7 +41,7 @@ def _series_headers(folder: Path) -> dict[str, list[tuple[Path, pydicom.Dataset]
     (a README) and DICOM files of a known non-image class are skipped; a DICOM file that cannot be read
     or has no image is refused (a slice dropped silently would shift the whole volume)."""
     series: dict[str, list[tuple[Path, pydicom.Dataset]]] = {}
-    for f in sorted(p for p in folder.iterdir() if p.is_file()):
+    for f in folder_files(folder, "CT series"):
         try:
             ds = read_dataset(f, stop_before_pixels=True)
         except InputError as exc:
@@ -147,9 +150,11 @@ def _regularise(
                          f"{max(abs(offsets).max(), 0):.4g} mm: no plausible CT; ImagePositionPatient is damaged")
     i0, j0 = math.floor(di.min()), math.floor(dj.min())
     shape = (h + math.ceil(dj.max()) - j0, w + math.ceil(di.max()) - i0)
-    if shape[0] > hi or shape[1] > hi or n_out * shape[0] * shape[1] > L.CTA_MAX_VOXELS:
-        raise InputError(f"resampling the series would need {n_out} x {shape[0]} x {shape[1]} voxels: the slice positions "
-                         "(ImagePositionPatient) are damaged")
+    voxels = n_out * shape[0] * shape[1]
+    if shape[0] > hi or shape[1] > hi or voxels > L.CTA_MAX_VOXELS or voxels > L.CTA_RESAMPLE_MAX_GROWTH * planes.size:
+        raise InputError(f"resampling the series would need {n_out} x {shape[0]} x {shape[1]} voxels from {planes.shape[0]} x "
+                         f"{planes.shape[1]} x {planes.shape[2]} acquired (at most {L.CTA_RESAMPLE_MAX_GROWTH} times as many): "
+                         "the slice positions (ImagePositionPatient) or spacings are damaged; export the series again")
     fill = float(planes.min())
     out = np.empty((n_out,) + shape, dtype=np.float32)
     for t in range(n_out):
@@ -165,6 +170,11 @@ def _regularise(
     return out, dz, (i0, j0)
 
 
+def _ids(ds: pydicom.Dataset) -> dict[str, str]:
+    """PatientID, StudyInstanceUID and SeriesInstanceUID of a slice, those present."""
+    return {k: str(ds.get(k)) for k in ("PatientID", "StudyInstanceUID", "SeriesInstanceUID") if ds.get(k) not in (None, "")}
+
+
 def read_dicom_series(folder: Path, series_uid: str | None) -> tuple[np.ndarray, np.ndarray, list[Path], dict]:
     """Voxels ``[k, j, i]`` (HU, float32), ``ijk -> LPS`` 4x4, the files in slice order and
     ``slice_geometry`` notes of the series in ``folder`` (``series_uid`` picks one of several)."""
@@ -174,11 +184,11 @@ def read_dicom_series(folder: Path, series_uid: str | None) -> tuple[np.ndarray,
     ids = sorted(groups)
     if series_uid is None:
         if len(ids) > 1:
-            raise InputError(f"{folder} holds {len(ids)} DICOM series ({', '.join(ids)}): choose one with series_uid=... "
-                             "or put the CTA series in a folder of its own")
+            raise InputError(f"{folder} holds {len(ids)} DICOM series ({', '.join(ids)}): choose one with --cta-series-uid UID "
+                             "(Python: load_cta(..., series_uid=UID)) or put the CTA series in a folder of its own")
         series_uid = ids[0]
     elif series_uid not in groups:
-        raise InputError(f"series {series_uid} is not in {folder}; it holds {', '.join(ids)}")
+        raise InputError(f"series {series_uid} is not in {folder}; it holds {', '.join(ids)}: give one of them to --cta-series-uid")
     headers = groups[series_uid]
     lo, hi = L.CTA_VOXELS_PER_AXIS
     if not lo <= len(headers) <= hi:
@@ -195,14 +205,27 @@ def read_dicom_series(folder: Path, series_uid: str | None) -> tuple[np.ndarray,
     offsets = np.stack([rel @ row, rel @ col], axis=1)  # in-plane offset of each slice origin (mm)
     tilted = bool(np.abs(offsets).max() > TILT_OFFSET_MM)
 
-    def check(shape: tuple[int, int, int]) -> None:
-        if not (lo <= shape[1] <= hi and lo <= shape[2] <= hi) or shape[0] != 1:
-            raise InputError(f"{folder.name}: a slice declares {shape[0]} frame(s) of {shape[1]} x {shape[2]} pixels: a CT slice "
-                             f"is one frame of {lo}..{hi} pixels per side")
+    rows, cols = int(headers[0][1].get("Rows", 0)), int(headers[0][1].get("Columns", 0))  # all equal (_geometry)
 
-    planes = np.concatenate([decode_frames(read_dataset(f), f.name, check)[0] for f, _ in headers])
+    def check(shape: tuple[int, int, int]) -> None:
+        if not (lo <= shape[1] <= hi and lo <= shape[2] <= hi) or shape != (1, rows, cols):
+            raise InputError(f"{folder.name}: a slice declares {shape[0]} frame(s) of {shape[1]} x {shape[2]} pixels: a CT slice "
+                             f"of this series is one frame of {rows} x {cols} pixels ({lo}..{hi} per side)")
+
+    if len(headers) * rows * cols > L.CTA_MAX_VOXELS:
+        raise InputError(f"{folder.name}: {len(headers)} slices of {rows} x {cols} pixels are more than the {L.CTA_MAX_VOXELS} "
+                         "voxels a CTA may have here; give a smaller series (or crop it to the head)")
+    planes = np.empty((len(headers), rows, cols), dtype=np.float32)
+    padded = 0
+    for k, (f, _) in enumerate(headers):
+        frames, slice_notes = decode_frames(read_dataset(f), f.name, check, padding_value=PADDING_HU)
+        planes[k] = frames[0]
+        padded += slice_notes.get("pixel_padding", {}).get("pixels", 0)
     ijk_to_lps = np.eye(4)
-    notes: dict = {"slice_geometry": {"slices": len(headers), "median_gap_mm": float(step)}}
+    notes: dict = {"slice_geometry": {"slices": len(headers), "median_gap_mm": float(step)}, "dicom_ids": _ids(headers[0][1])}
+    if padded:
+        notes["pixel_padding"] = {"voxels": int(padded), "set_to_hu": PADDING_HU,
+                                  "why": "PixelPaddingValue marks pixels outside the scanned field"}
     if even and not tilted:
         ijk_to_lps[:3, :3] = np.stack([row * spacing[1], col * spacing[0], normal * step], axis=1)
         ijk_to_lps[:3, 3] = positions[0]

@@ -18,6 +18,7 @@ from .. import limits as L
 from ..checksums import file_sha256
 from ..errors import InputError
 from ..geometry.frames import RAS_TO_LPS
+from ..inputpaths import input_kind
 from ..imagefiles import IMAGE_EXTENSIONS, check_image_file, image_extension
 from ..volume import Volume
 from .dicom_series import read_dicom_series
@@ -100,7 +101,31 @@ def _read_image_file(path: Path) -> tuple[sitk.Image, list[Path], dict]:
     if image.GetNumberOfComponentsPerPixel() == 1 and image.GetNumberOfPixels() != int(np.prod(declared.shape)):
         raise InputError(f"{path.name}: SimpleITK read {image.GetSize()} voxels but the header declares {declared.shape}: "
                          "the header is damaged; re-export the image")
-    return image, declared.files, {"voxel_data_checks": declared.checks}
+    notes = {"voxel_data_checks": declared.checks}
+    if len(declared.xforms) == 2 and image.GetDimension() == 3:
+        note = _xform_disagreement(declared.xforms, volume_from_sitk(image[:1, :1, :1]).ijk_to_ras, path.name, image.GetSize())
+        if note:
+            notes["orientation_note"] = note
+    return image, declared.files, notes
+
+
+#: sform and qform of one NIfTI header count as contradicting when a grid corner lands this far apart (mm).
+XFORM_DISAGREEMENT_MM = 0.5
+
+
+def _xform_disagreement(xforms: dict[str, np.ndarray], used: np.ndarray, name: str, size: tuple[int, ...]) -> str | None:
+    """A note when a NIfTI header's sform and qform place the grid's corners more than
+    :data:`XFORM_DISAGREEMENT_MM` apart (which one SimpleITK used, whether one of them is mirrored)."""
+    corners = np.array([[i, j, k, 1.0] for i in (0, size[0] - 1) for j in (0, size[1] - 1) for k in (0, size[2] - 1)]).T
+    q, s = xforms["qform"] @ corners, xforms["sform"] @ corners
+    apart = float(np.linalg.norm(q - s, axis=0).max())
+    if apart <= XFORM_DISAGREEMENT_MM:
+        return None
+    chose = min(xforms, key=lambda k: float(np.abs(xforms[k][:3] - used[:3]).max()))
+    mirrored = np.sign(np.linalg.det(xforms["qform"][:3, :3])) != np.sign(np.linalg.det(xforms["sform"][:3, :3]))
+    return (f"{name}: the NIfTI sform and qform disagree (grid corners up to {apart:.1f} mm apart"
+            f"{'; one of them is mirrored' if mirrored else ''}); the {chose} was used. Check the CTA's orientation "
+            "(left-right!) in a viewer and re-export it with one consistent transform")
 
 
 def load_cta(path: str | Path, *, hu_offset: float = 0.0, series_uid: str | None = None, check_hu: bool = True) -> Volume:
@@ -118,9 +143,7 @@ def load_cta(path: str | Path, *, hu_offset: float = 0.0, series_uid: str | None
     """
     path = Path(path)
     hu_offset = L.check_range("hu_offset", hu_offset, L.HU_OFFSET, "use -1024 for raw CT numbers, else 0")
-    if not path.exists():
-        raise InputError(f"CTA not found: {path} (check the path; a DICOM series is given as its folder)")
-    if path.is_dir():
+    if input_kind(path, "CTA") == "folder":
         array, ijk_to_lps, files, notes = read_dicom_series(path, series_uid)
         meta = {"source_path": str(path.resolve()), "source_files": len(files), "sha256": file_sha256(files),
                 "hu_offset": float(hu_offset), **notes}
@@ -213,4 +236,26 @@ def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True
         raise InputError(
             f"{name} has minimum {lo:g}: a head CT in HU contains air (about -1000 HU) around the head; "
             "check the rescale (hu_offset) or use an uncropped CT"
+        )
+    _check_hu_distribution(a, lo, name)
+
+
+def _check_hu_distribution(a: np.ndarray, lo: float, name: str) -> None:
+    """Refuse a volume whose voxels lie outside :data:`~geopose.limits.CTA_PLAUSIBLE_HU` in more than
+    :data:`~geopose.limits.CTA_MAX_IMPLAUSIBLE_SHARE` of the volume. Voxels at the minimum below that range, when
+    they are at least 1 % of the volume, are padding (outside the scan circle, e.g. -3024 HU) and not counted."""
+    plo, phi = L.CTA_PLAUSIBLE_HU
+    padding = int(np.count_nonzero(a == lo)) if lo < plo else 0
+    padding = padding if padding >= 0.01 * a.size else 0
+    below = int(np.count_nonzero(a < plo)) - padding
+    above = int(np.count_nonzero(a > phi))
+    counted = a.size - padding
+    share = (below + above) / max(counted, 1)
+    if share > L.CTA_MAX_IMPLAUSIBLE_SHARE:
+        pad = f" (the {padding} padding voxels at {lo:g} HU not counted)" if padding else ""
+        raise InputError(
+            f"{name}: {100 * share:.1f} % of its voxels lie outside {plo:g}..{phi:g} HU{pad} ({100 * below / counted:.1f} % below, "
+            f"{100 * above / counted:.1f} % above), which no CT in HU has: its pixel data or rescale are read wrong (e.g. signed "
+            "values as unsigned, a wrong RescaleSlope/Intercept or --hu-offset); re-export the series uncompressed "
+            "(gdcmconv --raw) or as NIfTI (dcm2niix), check its HU in a viewer and load that"
         )

@@ -43,6 +43,7 @@ from ..checksums import file_sha256
 from ..dicomio import decode_frames, float_tag, floats_tag, int_tag, looks_like_dicom, raw_tag, read_dataset
 from ..errors import InputError
 from ..geometry.detector import CArmAngles, Detector
+from ..inputpaths import folder_files, input_kind
 from ..imagefiles import IMAGE_EXTENSIONS, check_image_file, image_extension
 from ..jsonio import read_json
 from .run import (
@@ -287,7 +288,7 @@ def _dicom_headers(folder: Path) -> list[tuple[Path, pydicom.Dataset]]:
     """(file, header) of every DICOM file of ``folder``; files not meant to be DICOM are skipped, damaged
     DICOM files refused (a frame dropped silently would change the run)."""
     headers = []
-    for f in sorted(p for p in folder.iterdir() if p.is_file()):
+    for f in folder_files(folder, "DSA run"):
         try:
             headers.append((f, read_dataset(f, stop_before_pixels=True)))
         except InputError as exc:
@@ -317,11 +318,16 @@ def _read_dicom_folder(folder: Path, overrides: dict, photometric: str | None) -
             a, b = float_tag(first, key, headers[0][0].name), float_tag(ds, key, f.name)
             if a is not None and b is not None and abs(a - b) > ANGLE_TOLERANCE_DEG:
                 raise InputError(f"{f.name} has {key} {b} but the first frame {a}: the folder is not one fixed-angle run")
-    decoded = [_frames(read_dataset(f), f.name) for f, _ in headers]
-    shapes = {frames.shape[1:] for frames, _ in decoded}
-    if len(shapes) > 1:
-        raise InputError(f"{folder} holds frames of different sizes {sorted(shapes)}: the folder is not one run")
-    frames = np.concatenate([frames for frames, _ in decoded])
+    size = (int_tag(first, "Rows", headers[0][0].name), int_tag(first, "Columns", headers[0][0].name))
+    frames = np.empty((len(headers),) + size, dtype=np.float32)  # bounded by check_frames_shape above
+    integrity = set()
+    for k, (f, _) in enumerate(headers):
+        frame, frame_notes = _frames(read_dataset(f), f.name)
+        if frame.shape != (1,) + size:
+            raise InputError(f"{folder} holds frames of different sizes ({f.name}: {frame.shape[1:]}, {headers[0][0].name}: "
+                             f"{size}): the folder is not one run")
+        frames[k] = frame[0]
+        integrity.add(frame_notes["pixel_integrity"])
     found, sources, notes = _dicom_geometry(first, frames.shape[1], frames.shape[2], headers[0][0].name)
     if "frame_time_ms" not in sources:
         times = [t for t in (_dicom_time_s(ds) for _, ds in headers) if t is not None]
@@ -329,7 +335,7 @@ def _read_dicom_folder(folder: Path, overrides: dict, photometric: str | None) -
             found["frame_time_ms"] = float(np.median(np.diff(times)) * 1000.0)
             sources["frame_time_ms"] = "AcquisitionTime/ContentTime differences"
     meta = _dicom_metadata(first, folder, [f for f, _ in headers])
-    meta.update(notes, pixel_integrity="; ".join(sorted({n["pixel_integrity"] for _, n in decoded})))
+    meta.update(notes, pixel_integrity="; ".join(sorted(integrity)))
     _photometric(_declared_photometric(first), photometric, frames, folder.name, meta)
     return _assemble(frames, found, sources, overrides, folder.name, lambda k: GEOMETRY_SOURCES[k], meta)
 
@@ -376,7 +382,7 @@ def _read_image_with_sidecar(path: Path, overrides: dict, photometric: str | Non
         raise InputError(f"{path.name}: SimpleITK read {array.size} pixels but the header declares {shape}: the header is damaged")
     array = array.reshape(shape)
     side = sidecar_path(path)
-    found = _read_sidecar(side) if side.exists() else {}
+    found = _read_sidecar(side) if side.exists() else {}  # a special file named like a sidecar is refused by read_json
     declared_pi = found.pop("photometric_interpretation", "MONOCHROME2")
     if declared_pi not in PHOTOMETRIC:
         raise InputError(f"photometric_interpretation in {side.name} must be MONOCHROME1 or MONOCHROME2, got {declared_pi!r}")
@@ -408,9 +414,7 @@ def read_dsa(path: str | Path, *, photometric_interpretation: str | None = None,
     tag/key and the remedy.
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"DSA run not found: {path} (check the path)")
-    if path.is_dir():
+    if input_kind(path, "DSA run") == "folder":
         return _read_dicom_folder(path, overrides, photometric_interpretation)
     if image_extension(path) in NIFTI_EXTENSIONS:
         return _read_image_with_sidecar(path, overrides, photometric_interpretation)

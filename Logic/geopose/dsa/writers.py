@@ -62,8 +62,12 @@ def write_dsa_dicom(
     series_description: str = "GeoPose DSA",
     burn_in_text: str | None = None,
     bits: int = 16,
+    study_instance_uid: str | None = None,
 ) -> Path:
     """Write ``run`` as an uncompressed DICOM XA multi-frame (X-Ray Angiographic Image Storage).
+
+    Identity: ``patient_id``, and ``study_instance_uid`` (else the run's metadata's, else a new one): give the
+    runs of one biplane acquisition one study.
 
     Pixel data: ``bits`` 8 or 16, unsigned, MONOCHROME2 when the run is MONOCHROME2
     (MONOCHROME1 runs keep MONOCHROME1); non-integer values are quantised with
@@ -93,7 +97,7 @@ def write_dsa_dicom(
     ds.Modality = "XA"
     ds.ImageType = ["DERIVED", "PRIMARY", "SINGLE PLANE", "SINGLE A"]
     ds.PatientName, ds.PatientID = patient_name, patient_id
-    ds.StudyInstanceUID = run.metadata.get("StudyInstanceUID", generate_uid())
+    ds.StudyInstanceUID = study_instance_uid or run.metadata.get("StudyInstanceUID") or generate_uid()
     ds.SeriesInstanceUID = generate_uid()
     ds.StudyDate = ds.SeriesDate = ds.ContentDate = now.strftime("%Y%m%d")
     ds.StudyTime = ds.SeriesTime = ds.ContentTime = now.strftime("%H%M%S")

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+from pydicom.uid import generate_uid
 
 from ..dsa import write_dsa_dicom
 from ..volume import Volume
@@ -64,8 +65,10 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
     ]
     (out / "centerlines.json").write_text(json.dumps({"frame": "centred native (RAS axes, origin at the CTA voxel-grid centre), mm", "centerlines": lines}))
     views = {}
+    study = generate_uid(entropy_srcs=["geopose-phantom", str(seed)])  # one biplane acquisition: one study
     for acq, sim, name in zip(acqs, runs, ("pa", "lat")):
-        write_dsa_dicom(sim.run, out / f"dsa_{name}.dcm", bits=8, series_description=f"GeoPose phantom DSA {acq.view_role}")
+        write_dsa_dicom(sim.run, out / f"dsa_{name}.dcm", bits=8, series_description=f"GeoPose phantom DSA {acq.view_role}",
+                        study_instance_uid=study)
         views[name] = {
             "file": f"dsa_{name}.dcm",
             "pose_camera_to_world": sim.pose.tolist(),

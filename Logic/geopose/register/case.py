@@ -102,9 +102,11 @@ def prepare_case(
         monitor.step("prepare", (i + 1) / 3, f"DSA {key.upper()}")
         kwargs = {"mask": dsa_masks[key]} if dsa_masks and key in dsa_masks else {}
         prepared[key] = preprocess_dsa(dsa[key], tto_px=tto_px, model_clip_percentiles=model_clip_percentiles, **kwargs)
-    if prepared["pa"].view_role != PA_ROLE or prepared["lat"].view_role != LAT_ROLE:
+    roles = (prepared["pa"].view_role, prepared["lat"].view_role)
+    if roles != (PA_ROLE, LAT_ROLE):
+        remedy = "swap them" if roles == (LAT_ROLE, PA_ROLE) else f"give a {'lateral' if roles[0] == PA_ROLE else 'PA'} run for the other view"
         raise InputError(
-            f"the 'pa' run looks {prepared['pa'].view_role} and the 'lat' run {prepared['lat'].view_role} by their "
-            "primary angles: swap them, or override the angle (primary_deg) if the tags are wrong"
+            f"the 'pa' run looks {roles[0]} and the 'lat' run {roles[1]} by their primary angles: {remedy}, or override the "
+            "angle (primary_deg; CLI --pa-primary-deg / --lat-primary-deg) if the tags are wrong"
         )
     return PreparedCase(cta, volume, source, prepared)

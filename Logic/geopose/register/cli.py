@@ -10,12 +10,13 @@ import argparse
 import json
 from pathlib import Path
 
+from ..consistency import ALLOW_ID_MISMATCH_OPTION, check_inputs_belong_together
 from ..cta import load_cta
 from ..cta.io import file_sha256
 from ..dsa import geometry_override_args, geometry_overrides_from_args, read_dsa
 from ..options import BACKENDS, DEVICES, RegistrationOptions
 from ..outputs import OutputFolder
-from .evaluate import load_truth, truth_metrics
+from .evaluate import truth_for, truth_metrics
 from .pipeline import register_case, resolve_engine
 from .progress import ConsoleProgress
 from .record import build_record
@@ -57,7 +58,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cta", required=True, help="CTA volume (NIfTI, NRRD, MHA or a DICOM series folder)")
     p.add_argument("--dsa-pa", required=True, help="PA DSA run (DICOM XA, NIfTI/NRRD + JSON sidecar, or DICOM folder)")
     p.add_argument("--dsa-lat", required=True, help="lateral DSA run")
+    p.add_argument("--cta-series-uid", help="SeriesInstanceUID of the CTA series, when the --cta folder holds several")
     p.add_argument("--hu-offset", type=float, default=0.0, help="added to the CTA's values to make HU (e.g. -1024)")
+    p.add_argument(ALLOW_ID_MISMATCH_OPTION, action="store_true",
+                   help="anonymised data: accept runs and CTA whose PatientID or StudyInstanceUID differ (recorded in result.json)")
     p.add_argument("--cranium-mask", help="CTA cranium mask on the CTA grid (default: computed from the CTA)")
     p.add_argument("--segmentation", help="CTA vessel label map on the CTA grid (default: contrast threshold)")
     p.add_argument("--models", help="folder with the Init and Refine model files and their manifest.json (default: the shipped models)")
@@ -75,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         args.cta, args.dsa_pa, args.dsa_lat, args.out,
         cranium_mask=args.cranium_mask, segmentation=args.segmentation, models=args.models,
         allow_unverified_models=args.allow_unverified_models, hu_offset=args.hu_offset, options=options_from_args(args),
+        cta_series_uid=args.cta_series_uid, allow_id_mismatch=args.allow_id_mismatch,
         overrides={k: geometry_overrides_from_args(args, prefix=f"{k}-") for k in ("pa", "lat")},
     )
     print_summary(record, Path(args.out))
@@ -94,24 +99,33 @@ def register_files(
     options: RegistrationOptions | None = None,
     overrides: dict[str, dict] | None = None,
     hu_offset: float = 0.0,
+    cta_series_uid: str | None = None,
+    allow_id_mismatch: bool = False,
     progress=None,
 ) -> dict:
     """Read the files, register, and write the overlays and then ``result.json`` into ``out``; returns the record.
 
-    ``out`` is checked, locked and cleared first (:class:`~geopose.outputs.OutputFolder`); a run that
-    fails or is killed leaves no ``result.json``. A ``truth.json`` next to the CTA (a ``geopose
-    phantom`` case) adds accuracy metrics. ``overrides[view]`` are ``read_dsa`` keywords.
+    ``out`` is checked (it must hold none of the inputs), locked and cleared first
+    (:class:`~geopose.outputs.OutputFolder`); a run that fails or is killed leaves no ``result.json``.
+    Before any work the inputs are read and checked to belong together
+    (:func:`~geopose.consistency.check_inputs_belong_together`). A ``truth.json`` next to the CTA (a
+    ``geopose phantom`` case) adds accuracy metrics; one that is not that CTA's is ignored with a note.
+    ``overrides[view]`` are ``read_dsa`` keywords.
     """
     options = options or RegistrationOptions()
     overrides = overrides or {}
-    with OutputFolder(out, OVERLAY_NAMES) as folder:
-        cta = load_cta(cta_path, hu_offset=hu_offset)
+    given = {"--cta": cta_path, "--dsa-pa": dsa_pa, "--dsa-lat": dsa_lat, "--cranium-mask": cranium_mask,
+             "--segmentation": segmentation, "--models": models}
+    with OutputFolder(out, OVERLAY_NAMES, inputs=given) as folder:
+        cta = load_cta(cta_path, hu_offset=hu_offset, series_uid=cta_series_uid)
         runs = {
             "pa": read_dsa(dsa_pa, **overrides.get("pa", {})),
             "lat": read_dsa(dsa_lat, **overrides.get("lat", {})),
         }
+        consistency = check_inputs_belong_together(cta, runs, allow_id_mismatch=allow_id_mismatch)
         cranium = load_cta(cranium_mask, check_hu=False) if cranium_mask else None
         seg = load_cta(segmentation, check_hu=False) if segmentation else None
+        truth, truth_note = truth_for(cta_path, cta)
         _, _, model_set = resolve_engine(options, models, allow_unverified=allow_unverified_models)
         bar = ConsoleProgress() if progress is None else None
         try:
@@ -120,14 +134,14 @@ def register_files(
         finally:
             if bar is not None:
                 bar.finish()
-        truth = load_truth(cta_path)
-        inputs = {"cta": {"path": str(cta_path), "sha256": cta.metadata.get("sha256")}}
+        inputs = {"cta": {"path": str(cta_path), "sha256": cta.metadata.get("sha256")}, "consistency": consistency}
         for key, path in (("pa", dsa_pa), ("lat", dsa_lat)):
             inputs[f"dsa_{key}"] = {"path": str(path), "sha256": runs[key].metadata.get("sha256")}
         for name, path in (("cranium_mask", cranium_mask), ("segmentation", segmentation)):
             if path:
                 inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
         record = build_record(case, runs, inputs=inputs, truth_metrics=truth_metrics(case, runs, truth) if truth else None)
+        record["notes"] += [note for note in (truth_note, cta.metadata.get("orientation_note")) if note]
         write_overlays(case, folder, truth.carotid_points_mm if truth else None)
         folder.commit(record)
     return record

@@ -3,20 +3,22 @@ pose errors per view and stage (numpy; renders with the case's renderer)."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..dsa import DSARun
+from ..errors import InputError
+from ..jsonio import read_json
+from ..volume import Volume
 from ..geometry.detector import Detector
 from ..geometry.poses import project_points
 from ..metrics import MPCD, cldice, mpcd, pose_error_components, pose_errors
 from ..render.renderer import Renderer
 from .results import CaseRegistration
 
-__all__ = ["Truth", "load_truth", "carotid_mpcd", "evaluate_pose", "truth_metrics", "vessel_mask", "VESSEL_MASK_FRACTION",
+__all__ = ["Truth", "load_truth", "truth_for", "carotid_mpcd", "evaluate_pose", "truth_metrics", "vessel_mask", "VESSEL_MASK_FRACTION",
            "SUCCESS_MPCD_MM"]
 
 #: A projected vessel pixel is one above this fraction of the image's maximum vessel line integral.
@@ -33,22 +35,47 @@ class Truth:
     poses: dict[str, np.ndarray]
     carotid_points_mm: np.ndarray
     source: str = ""
+    #: The CTA grid the truth was made for: (shape ijk, ijk -> RAS 4 x 4).
+    grid: tuple[tuple[int, ...], np.ndarray] | None = None
 
 
 def load_truth(cta_path: str | Path) -> Truth | None:
-    """``truth.json`` + ``centerlines.json`` next to a phantom CTA, or ``None`` if absent."""
+    """``truth.json`` + ``centerlines.json`` next to a phantom CTA, or ``None`` if either is absent; content that
+    is not a ``geopose phantom`` case's (missing keys, wrong shapes) is an :class:`InputError`."""
     folder = Path(cta_path).resolve().parent
     truth_file, lines_file = folder / "truth.json", folder / "centerlines.json"
-    if not truth_file.is_file() or not lines_file.is_file():
+    if not truth_file.exists() or not lines_file.exists():
         return None
-    truth = json.loads(truth_file.read_text())
-    lines = json.loads(lines_file.read_text())["centerlines"]
-    poses = {key: np.asarray(truth["views"][key]["pose_camera_to_world"], float) for key in ("pa", "lat")}
-    carotid_labels = {int(v) for name, v in truth["labels"].items() if name.startswith("ica")}
-    carotid = [np.asarray(c["points_mm"], float) for c in lines if int(c["label"]) in carotid_labels]
+    remedy = "it is not a geopose phantom's; move it away from the CTA (it only adds accuracy metrics)"
+    truth, lines = read_json(truth_file, remedy), read_json(lines_file, remedy)
+    try:
+        poses = {key: np.asarray(truth["views"][key]["pose_camera_to_world"], float) for key in ("pa", "lat")}
+        carotid_labels = {int(v) for name, v in truth["labels"].items() if name.startswith("ica")}
+        carotid = [np.asarray(c["points_mm"], float).reshape(-1, 3) for c in lines["centerlines"] if int(c["label"]) in carotid_labels]
+        grid = (tuple(int(n) for n in truth["shape_ijk"]), np.asarray(truth["ijk_to_ras"], float))
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        raise InputError(f"{truth_file} has no readable {exc} where a phantom case's truth has one; {remedy}") from None
+    if any(p.shape != (4, 4) or not np.isfinite(p).all() for p in poses.values()) or grid[1].shape != (4, 4):
+        raise InputError(f"{truth_file} holds poses or a grid that are not 4 x 4 matrices; {remedy}")
     if not carotid:
-        raise ValueError(f"{lines_file} holds no internal carotid centreline")
-    return Truth(poses, np.concatenate(carotid), str(truth_file))
+        raise InputError(f"{lines_file} holds no internal carotid centreline; {remedy}")
+    return Truth(poses, np.concatenate(carotid), str(truth_file), grid)
+
+
+def truth_for(cta_path: str | Path, cta: Volume) -> tuple[Truth | None, str | None]:
+    """The phantom truth beside ``cta_path`` if it describes ``cta`` (its grid and affine), else ``None``; and a
+    note when a truth file was there but is not used."""
+    try:
+        truth = load_truth(cta_path)
+    except InputError as exc:
+        return None, f"ground truth ignored, no accuracy metrics: {exc}"
+    if truth is None:
+        return None, None
+    shape, affine = truth.grid
+    if shape != tuple(cta.shape_ijk) or not np.allclose(affine, cta.ijk_to_ras, atol=1e-3):
+        return None, (f"ground truth ignored, no accuracy metrics: {truth.source} describes a {shape} grid with another "
+                      "affine than this CTA's, so it belongs to another case")
+    return truth, None
 
 
 def vessel_mask(image: np.ndarray, reference_max: float | None = None) -> np.ndarray:
