@@ -25,7 +25,9 @@ the end; the lower final objective wins (the DICOM angles' within a tie), so the
 never worse, by the objective, than the acquisition's own geometry. A CTA without vessels (no
 contrast, or a segmentation that found none) leaves the head's silhouette as the only evidence:
 the result then starts from the DICOM angles alone and its move from there is bounded
-(``bound.py``); the quality flag says so. With vessels and the TTO, the result is then weighed
+(``bound.py``); the quality flag says so. A vessel mask computed from the CTA (no segmentation
+given) is an approximation whose objective can lie degrees from the truth: a TTO result that moved
+the networks' estimate further than the stages may disagree is not kept. With vessels and the TTO, the result is then weighed
 against the CTA mirrored left-right (``mirror.py``): a header that swaps the patient's sides fits
 the silhouette but not the vessels.
 ``independent_views=True`` runs the published pipeline: each view on its own, the paper's
@@ -64,7 +66,7 @@ from .evidence import view_evidence
 from .mirror import mirror_test
 from .objective import PAPER_OBJECTIVE, objective_value
 from .progress import CancelCheck, Monitor, ProgressCallback
-from .quality import VIEW_DISAGREEMENT_MM, Quality, assess
+from .quality import AGREEMENT_DEG, AGREEMENT_MM, VIEW_DISAGREEMENT_MM, Quality, assess
 from .refine import greedy_refine, refine_from_starts
 from .results import CaseRegistration, InitEstimate, Registration, ViewOutcome
 from .search import similarity_search
@@ -88,6 +90,12 @@ NO_TORCH_TTO_NOTE = ("PyTorch is not installed: calibration, Init and Refine ran
 #: Said (record, flag) when the CTA's vessel mask is empty: the silhouette is the only evidence.
 NO_VESSELS_NOTE = ("the CTA shows no contrast-filled vessels (none found, or none given): the pose rests on the head's "
                    "silhouette alone, so it started from the DICOM angles and its move from there was bounded")
+
+#: Said (record, flag) when the TTO on a vessel mask computed from the CTA moved the networks' estimate further
+#: than the stages may disagree (quality.AGREEMENT_DEG / AGREEMENT_MM): that estimate is kept.
+APPROXIMATE_VESSELS_NOTE = ("the test-time optimisation, scored on the vessel mask computed from the CTA (an approximation: "
+                            "give a vessel segmentation for the full accuracy), moved the networks' estimate by {rot:.1f} deg / "
+                            "{mm:.0f} mm; the networks' estimate (greedy Refine + search) was kept")
 
 #: Objective difference (summed over both views) within which two TTO results tie; on a tie the
 #: DICOM angles' result is kept. Finalists' objectives on the 40 benchmark phantoms differ by at
@@ -206,6 +214,8 @@ def _consistency_doubts(key: str, init: InitEstimate, label: int, registration: 
                       "silhouette alone" + ("" if bound is None or not bound.bounded else
                                             f"; its move from the DICOM angles was bounded ({bound.rotation_deg:.1f} deg / "
                                             f"{bound.shift_mm:.0f} mm asked, {100 * bound.fraction:.0f} % kept)"))
+    if registration.kept_learned:
+        doubts.append(registration.kept_learned)
     apart = registration.checks.get("view_disagreement_mm", 0.0)
     if apart > VIEW_DISAGREEMENT_MM:
         doubts.append(f"the two views place the patient {apart:.0f} mm apart along the axis both see: did the patient move "
@@ -367,11 +377,18 @@ def register_case(
             tto_result = test_time_optimise(tto_renderer, tto_views(case.views, finals), schedule, objective=PAPER_OBJECTIVE,
                                             biplanar=options.biplanar, monitor=monitor)
             finals = dict(tto_result.poses)
+        if joint and registration.vessel_evidence and segmentation is None and tto_result is not None:
+            moved = [stage_agreement(learned[key], finals[key]) for key in VIEW_KEYS]
+            rot, mm = max(m[0] for m in moved), max(m[1] for m in moved)
+            if rot > AGREEMENT_DEG or mm > AGREEMENT_MM:
+                registration.kept_learned = APPROXIMATE_VESSELS_NOTE.format(rot=rot, mm=mm)
+                notes.append(registration.kept_learned)
+                finals, registration.patient_pose = dict(learned), X_learned
         if joint and not registration.vessel_evidence:
             registration.bound = bound_move(registration.patient_pose)
             registration.patient_pose = registration.bound.patient_pose
             finals = view_poses(registration.patient_pose, rig)
-    if joint and registration.vessel_evidence and tto_result is not None:
+    if joint and registration.vessel_evidence and segmentation is not None and tto_result is not None:
         with _timed(times, "mirror", engine):
             monitor.step("mirror", 0.0, "weighing the result against the CTA mirrored left-right")
             registration.mirror = mirror_test(renderer, case.views, registration.patient_pose, rig, device)

@@ -22,7 +22,8 @@ SCHEMA = "geopose-result"
 #: 9: each view's ``evidence`` (the objective's terms at the final pose, ``register/evidence.py``),
 #: ``registration.vessel_evidence``, ``registration.bound`` (without vessel evidence, the move from the
 #: DICOM angles asked for and kept, ``register/bound.py``; null otherwise) and ``registration.mirror``
-#: (the result against the CTA mirrored left-right, ``register/mirror.py``; null when not run).
+#: (the result against the CTA mirrored left-right, ``register/mirror.py``; null when not run),
+#: ``registration.kept_learned`` (why the networks' estimate was kept over the TTO's result; null: it was not).
 #: 8: ``registration.similarity_search`` (the search after biplane greedy Refine: start and end mNCC and
 #: patient pose, the moves kept, the poses scored; null when it did not run) and the views' ``search``
 #: stage pose.
@@ -213,6 +214,7 @@ def build_record(
             "vessel_evidence": case.registration.vessel_evidence,
             "bound": None if case.registration.bound is None else case.registration.bound.as_dict(),
             "mirror": None if case.registration.mirror is None else case.registration.mirror.as_dict(),
+            "kept_learned": case.registration.kept_learned or None,
             "refine_start": case.registration.refine_start,
             "refine_start_doc": "biplane-rigid: greedy Refine ran from every combination of a rotation and an isocentre "
             "of the fused Init and each view's Init; the end with the highest mean mNCC (refine_start_mncc) was kept",

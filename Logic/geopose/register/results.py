@@ -145,6 +145,7 @@ class Registration:
     vessel_evidence: bool = True
     bound: "BoundedMove | None" = None
     mirror: "MirrorTest | None" = None
+    kept_learned: str = ""
 
 
 @dataclass
