@@ -3,8 +3,11 @@ simulator's truth (docs/cranium_masks.md): the DSA cranium mask of each run (bef
 MAP; after: the library's ``dsa_cranium_mask``) and the CTA cranium mask projected at the true pose,
 on plain and densely opacified phantoms (``dense_runs.py``) and real head CTs with simulated runs.
 
-    .venv/bin/python benchmarks/bench_masks.py --seeds 6000-6009 --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
-        --ge-head ../shared/data/ge_head_ct_tilt --real-seeds 0-1 --doc docs/cranium_masks_table.md
+    .venv/bin/python benchmarks/bench_masks.py --seeds 5000-5007 --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
+        --ge-head ../shared/data/ge_head_ct_tilt --real-seeds 0-1 --threads 1 --doc docs/cranium_masks_table.md
+
+Phantoms at 2 mm (``--spacing-mm``), runs at 512 px; about 1.5 min per phantom pair and 1 min per
+real-head case on 2 cores.
 
 Everything on the TTO detector (the acquisition SDD, 128 px along the longer side), where the
 objective compares them. The truth of a run is the cranium the simulator drew, projected at the

@@ -228,18 +228,16 @@ def test_case_with_arteries_shows_the_injected_carotid(with_case, plain, made):
 def test_on_a_plain_real_head_the_tto_from_the_truth_stays_near_it(plain):
     """On a real head without vessels (silhouette terms only; the MAP is drawn by quantum noise) the
     default objective's optimum lies near the truth: 25 TTO steps from the true patient pose end within
-    1 deg and 15 mm of source position in both views, nearer than with the DRR clipped like the MAP."""
+    1 deg and 15 mm of source position in both views. (With the DSA mask that ignores the vessels,
+    dsa.preprocess.dsa_cranium_mask, the DRR clipped like the MAP ends nearer on this head, 0.35 against
+    0.81 deg; it was 0.82 against 0.52 before: the silhouette model's choice, docs/silhouette.md, is
+    open again.)"""
     prep = prepare_case(plain.cta, plain.runs, cranium_mask=plain.cranium, segmentation=plain.vessels)
     renderer, rig = TorchRenderer(prep.volume), nominal_poses(plain.runs)
-    ends = {}
-    for model in ("fitted", "clipped"):
-        poses = run_tto(renderer, tto_views(prep.views, plain.true_poses), rig=rig,
-                        objective=Objective(silhouette=model)).poses
-        ends[model] = [evaluate_pose(poses[k], plain.true_poses[k], run.detector, run.angles.sod_mm, None)
-                       for k, run in plain.runs.items()]
-    for view in ends["fitted"]:
+    poses = run_tto(renderer, tto_views(prep.views, plain.true_poses), rig=rig, objective=Objective(silhouette="fitted")).poses
+    ends = [evaluate_pose(poses[k], plain.true_poses[k], run.detector, run.angles.sod_mm, None) for k, run in plain.runs.items()]
+    for view in ends:
         assert view["rotation_error_deg"] <= 1.0 and view["source_distance_mm"] <= 15.0, ends
-    assert ends["fitted"][0]["rotation_error_deg"] < ends["clipped"][0]["rotation_error_deg"], ends
 
 
 def _real(name: str, mpcd: float | None) -> dict:

@@ -14,13 +14,14 @@ from ..volume import Volume
 from .io import sitk_from_volume
 from ..errors import InputError
 
+<<<<<<< HEAD
 __all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU", "DETACH_RADIUS_MM", "MARROW_MAX_MM2", "BODY_HU", "CONTRAST_SPAN_MM"]
+=======
+__all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU"]
+>>>>>>> dsamask
 
 #: Radius (mm) of the closing that seals sutures, foramina and thin bone before filling.
 CLOSING_RADIUS_MM = 7.0
-#: Radius (mm, in the axial plane) of the opening that detaches the cervical spine and the facial bones
-#: from the cranium mask.
-DETACH_RADIUS_MM = 20.0
 #: The cranium mask is computed on a grid no finer than this (mm), then mapped back.
 WORK_SPACING_MM = 2.0
 #: Contrast-filled lumen range (HU) accepted as vessel by the approximate vessel mask.
@@ -102,13 +103,8 @@ def cranium_mask_from_cta(volume: Volume, *, bone_hu: float = C.HU_BONE_MIN) -> 
     (4) holes filled in every axial slice (slices across the array axis closest to
     RAS superior), which fills the intracranial space wherever the skull forms a ring,
     then a closing along that axis (bridges slices whose ring has a gap) and a 3D hole
-    fill; (5) the largest component again; (6) an opening in the axial plane (a
-    :data:`DETACH_RADIUS_MM` disc, none along the superior axis, so that a scan that cuts the vault
-    keeps it) that keeps the largest component: the cervical spine and the facial bones, which
-    steps 2-4 join to the skull with their cavities, hang on it by bridges narrower than the disc and
-    drop off. The mask then describes the skull and its contents, as the DSA cranium mask does
-    (docs/cranium_masks.md: on phantoms 1.02-1.08 times the cranium label's volume, 1.16-1.27
-    before).
+    fill; (5) the largest component again. Facial bones that form rings
+    in axial slices (maxilla, mandible) are included with their enclosed cavities.
     """
     if not np.any(volume.array > bone_hu):
         raise InputError(f"no voxel above {bone_hu:g} HU: the CTA shows no bone, so no cranium mask can be derived; supply a mask")
@@ -124,19 +120,8 @@ def cranium_mask_from_cta(volume: Volume, *, bone_hu: float = C.HU_BONE_MIN) -> 
     line = [0, 0, 0]
     line[2 - axis] = _radius_vox(CLOSING_RADIUS_MM, spacing)[2 - axis]
     bridged = sitk.BinaryMorphologicalClosing(filled, line, sitk.sitkBox)
-    solid = _largest_component(sitk.BinaryFillhole(bridged, fullyConnected=False))
-    in_plane = _radius_vox(DETACH_RADIUS_MM, spacing)
-    in_plane[2 - axis] = 0
-    out = _back_to_full(_detach(solid, in_plane), work, full)
-    return volume.like(out, kind="cranium_mask",
-                       method="bone threshold + closing + largest component + axial fill + axial opening that drops spine and face")
-
-
-def _detach(solid: sitk.Image, radius_vox: list[int]) -> sitk.Image:
-    """``solid`` (uint8) less what hangs on it by bridges narrower than twice ``radius_vox`` (per axis): eroded,
-    the largest component kept, dilated back, within ``solid`` (an opening that keeps one component)."""
-    core = _largest_component(sitk.BinaryErode(solid, radius_vox, sitk.sitkBall))
-    return sitk.And(sitk.BinaryDilate(core, radius_vox, sitk.sitkBall), solid)
+    out = _back_to_full(_largest_component(sitk.BinaryFillhole(bridged, fullyConnected=False)), work, full)
+    return volume.like(out, kind="cranium_mask", method="bone threshold + closing + largest component + axial fill")
 
 
 def vessel_mask_from_cta(volume: Volume) -> Volume:
