@@ -27,6 +27,7 @@ COMMANDS: list[tuple[str, str]] = [
     ("geopose.bench.cli", "register"),
     ("geopose.phantom.cli", "register"),
     ("geopose.phantom.gallery", "register"),
+    ("geopose.web.cli", "register"),
 ]
 
 
@@ -43,7 +44,7 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _write_traceback(exc: BaseException) -> str:
+def write_traceback(exc: BaseException) -> str:
     """Write ``exc``'s full traceback to a new temporary file; its path (or why none could be written)."""
     try:
         with tempfile.NamedTemporaryFile("w", prefix="geopose-traceback-", suffix=".txt", delete=False) as handle:
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # an internal error: one line here, the traceback in a file
-        where = _write_traceback(exc)
+        where = write_traceback(exc)
         print(f"geopose {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)} "
               f"(full traceback in {where}; please report it)", file=sys.stderr)
         return 1
