@@ -18,24 +18,29 @@ import traceback
 from . import __version__
 from .errors import InputError
 
+#: The module of each sub-command; a command line naming one imports only that module (so e.g.
+#: ``geopose view`` and ``geopose register`` start without importing PyTorch).
+COMMAND_MODULES: dict[str, str] = {
+    "demo": "geopose.demo",
+    "import-checkpoint": "geopose.nets.checkpoint",
+    "train": "geopose.training.cli",
+    "register": "geopose.register.cli",
+    "bench": "geopose.bench.cli",
+    "phantom": "geopose.phantom.cli",
+    "phantom-gallery": "geopose.phantom.gallery",
+    "view": "geopose.web.cli",
+}
 #: (module, register-function) for every sub-command.
-COMMANDS: list[tuple[str, str]] = [
-    ("geopose.demo", "register"),
-    ("geopose.nets.checkpoint", "register"),
-    ("geopose.training.cli", "register"),
-    ("geopose.register.cli", "register"),
-    ("geopose.bench.cli", "register"),
-    ("geopose.phantom.cli", "register"),
-    ("geopose.phantom.gallery", "register"),
-    ("geopose.web.cli", "register"),
-]
+COMMANDS: list[tuple[str, str]] = [(module, "register") for module in COMMAND_MODULES.values()]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser of every sub-command, or only of the one ``argv`` starts with."""
     parser = argparse.ArgumentParser(prog="geopose", description="GeoPose CTA-to-DSA C-arm pose estimation")
     parser.add_argument("--version", action="version", version=f"geopose {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module, fn in COMMANDS:
+    named = COMMAND_MODULES.get(argv[0]) if argv else None
+    for module, fn in [c for c in COMMANDS if c[0] == named] or COMMANDS:
         getattr(importlib.import_module(module), fn)(sub)
     return parser
 
@@ -55,7 +60,8 @@ def write_traceback(exc: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(argv).parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except InputError as exc:
