@@ -3,7 +3,8 @@ overlay, the quality flags and the stages, and saving. Needs the ``web`` extra.
 
 All scene and VTK work runs on the server's event loop; the registration and the reading of a result
 folder run in worker threads (:class:`~.session.Session`), and a ticker on the loop pushes their
-progress to the page four times a second.
+progress to the page four times a second. The server listens before Slicer's MRML is imported: the
+page is usable at once and its 3D view is attached when that import (in a thread) is done.
 """
 
 from __future__ import annotations
@@ -24,6 +25,12 @@ from .session import Review, Session, files_from_fields, review_from_folder
 TICK_S = 0.25
 STAGE_TITLES = {"nominal": "DICOM angles", "init": "after Init", "refine": "after Refine", "search": "after search",
                 "final": "final"}
+
+
+def _import_slicer() -> None:
+    """Import Slicer's MRML (the slicer-core wheel) and trame-slicer: seconds, so off the loop."""
+    import trame_slicer.core  # noqa: F401
+    import trame_slicer.rca_view  # noqa: F401
 
 
 def _one_line(exc: BaseException) -> str:
@@ -65,22 +72,41 @@ class GeoPoseViewApp:
     """The trame app around one :class:`Session` and one trame-slicer ``SlicerApp``."""
 
     def __init__(self, server, session: Session, options, fields: dict[str, str]):
-        from trame_slicer.core import LayoutManager, SlicerApp
-        from trame_slicer.rca_view import register_rca_factories
+        from trame_client.widgets.core import VirtualNode
 
         self.server, self.session, self.options = server, session, options
-        self.slicer_app = SlicerApp()
-        register_rca_factories(self.slicer_app.view_manager, self.server)
-        self.layout_manager = LayoutManager(self.slicer_app.scene, self.slicer_app.view_manager, self.server)
-        self.layout_manager.register_layout_dict({"3D": LayoutManager.default_grid_configuration()["3D Only"]})
-        self.layout_manager.set_layout("3D")
+        self.slicer_app = None
+        self.views_node = VirtualNode(server)  # the 3D view's place in the page, filled by attach_views
+        self._views_attached: asyncio.Future | None = None
         state = self.server.state
         state.trame__title = "GeoPose"
         state.update({"case_dir": "", "cta_file": "", "pa_file": "", "lat_file": "", "result_dir": "", **fields})
         state.update({"status": "idle", "error": "", "stage": "", "message": "", "fraction": 0.0, "elapsed": "",
                       "ticks": 0, "overlays": [], "quality": [], "stages": [], "saved": "", "result_folder": "",
-                      "notes": []})
+                      "notes": [], "views_ready": False})
         self._build_ui()
+
+    def attach_views(self) -> "asyncio.Future":
+        """Import Slicer's MRML and trame-slicer in a thread, then build the Slicer app and its 3D view
+        on the loop (once; the future is done when the view is in the page)."""
+        if self._views_attached is None:
+            self._views_attached = asyncio.ensure_future(self._attach_views())
+        return self._views_attached
+
+    async def _attach_views(self) -> None:
+        await asyncio.get_running_loop().run_in_executor(None, _import_slicer)
+        from trame_slicer.core import LayoutManager, SlicerApp
+        from trame_slicer.rca_view import register_rca_factories
+
+        self.slicer_app = SlicerApp()
+        register_rca_factories(self.slicer_app.view_manager, self.server)
+        layouts = LayoutManager(self.slicer_app.scene, self.slicer_app.view_manager, self.server,
+                                virtual_node=self.views_node, is_virtual_node_initialized=True)
+        layouts.register_layout_dict({"3D": LayoutManager.default_grid_configuration()["3D Only"]})
+        with self.server.state:
+            layouts.set_layout("3D")
+            self.server.state.views_ready = True
+        self.layout_manager = layouts
 
     # ------------------------------------------------------------------ actions
     def register(self) -> None:
@@ -114,6 +140,7 @@ class GeoPoseViewApp:
             if self.session.status == "cancelled":
                 state.message = "registration cancelled"
             if self.session.status == "done":
+                await self.attach_views()
                 self._show(self.session.review)
 
     async def open_result(self) -> None:
@@ -126,6 +153,7 @@ class GeoPoseViewApp:
         except InputError as exc:
             state.error, state.status = _one_line(exc), "idle"
             return
+        await self.attach_views()
         with state:
             self._show(review)
             state.status = "done"
@@ -157,7 +185,7 @@ class GeoPoseViewApp:
         state = self.server.state
         state.error = ""
         try:
-            if not state.result_folder:
+            if not state.result_folder or self.slicer_app is None:
                 raise InputError("there is no result to save yet: register a case or open a result folder first")
             state.saved = "wrote " + ", ".join(str(p) for p in write(Path(state.result_folder)))
         except (InputError, OSError) as exc:
@@ -218,7 +246,8 @@ class GeoPoseViewApp:
             with layout.content:
                 with html.Div(classes="d-flex", style="height: calc(100vh - 64px);"):
                     with html.Div(style="flex: 1 1 0; position: relative; min-width: 300px;", id="view3d"):
-                        self.layout_manager.initialize_layout_grid(layout)
+                        html.Div("3D view loading...", v_if="!views_ready", classes="pa-4 text-caption", id="views-loading")
+                        self.views_node(layout)
                     with html.Div(classes="d-flex flex-column ga-1 pa-1", style="flex: 1.3 1 0; overflow-y: auto;", id="overlays"):
                         html.Img(v_for="o in overlays", key="o.name", src=("o.src",), alt=("o.name",),
                                  style="width: 100%; height: auto;", classes="overlay")
@@ -228,18 +257,21 @@ def serve(host: str, port: int, token: str | None, session: Session, options, fi
     """Build the app and serve it until interrupted; prints the page's address once it listens."""
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     from trame.app import get_server
+    from trame_rca import module as trame_rca_module
     from trame_slicer import module as trame_slicer_module
 
     from .access import page_url, token_middleware
 
     server = get_server("geopose", client_type="vue3")
     server.enable_module(trame_slicer_module)
+    server.enable_module(trame_rca_module)
     app = GeoPoseViewApp(server, session, options, fields)
     if token:
         server.controller.on_server_bind.add(lambda web_server: web_server.app.middlewares.append(token_middleware(token)))
 
     def ready(**_):
         print(f"GeoPose view: open {page_url(host, server.port, token)}", flush=True)
+        app.attach_views()
         if open_result:
             asyncio.ensure_future(app.open_result())
 
