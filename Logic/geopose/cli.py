@@ -45,7 +45,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def _one_line(text: str) -> str:
+def one_line(text) -> str:
+    """``text`` (or an exception's message) on one line."""
     return " ".join(str(text).split())
 
 
@@ -65,14 +66,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except InputError as exc:
-        print(f"geopose {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        print(f"geopose {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # an internal error: one line here, the traceback in a file
         where = write_traceback(exc)
-        print(f"geopose {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)} "
+        print(f"geopose {args.command}: internal error: {type(exc).__name__}: {one_line(exc)} "
               f"(full traceback in {where}; please report it)", file=sys.stderr)
         return 1
 

@@ -271,6 +271,16 @@ def test_register_cancel_and_review_the_demo_case_in_chromium(chromium, phantom_
                                timeout=60000)
         assert (out / "run-2" / "geopose_scene.mrb").stat().st_size > 10000
         assert sorted(p.name for p in (out / "run-2").glob("*.h5")) == ["GeoPose_LAT_pose.h5", "GeoPose_PA_pose.h5"]
+        # an existing result folder: a folder without one is refused in one line, a copy of this run opens
+        page.fill("#field-result", str(phantom_case))
+        page.click("#btn-open")
+        error = page.wait_for_selector("#error", timeout=60000).inner_text()
+        assert "holds no result.json" in error and len(error.strip().splitlines()) == 1
+        copied = shutil.copytree(out / "run-2", tmp_path / "copied")
+        page.fill("#field-result", str(copied))
+        page.click("#btn-open")
+        page.wait_for_selector(f"#result-folder:has-text('{copied.name}')", timeout=120000)
+        assert page.locator(".quality-flag").all_inner_texts() == flags
         assert not page_errors, page_errors
         if _screenshots():
             _screenshots().mkdir(parents=True, exist_ok=True)

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..register.report import OVERLAY_NAMES
-from .session import Review, Session, files_from_fields, review_from_folder
+from .session import Review, Session, error_line, files_from_fields, review_from_folder
 
 #: Seconds between progress pushes while a worker runs.
 TICK_S = 0.25
@@ -31,10 +31,6 @@ def _import_slicer() -> None:
     """Import Slicer's MRML (the slicer-core wheel) and trame-slicer: seconds, so off the loop."""
     import trame_slicer.core  # noqa: F401
     import trame_slicer.rca_view  # noqa: F401
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())
 
 
 def _png_data_url(path: Path) -> str:
@@ -116,7 +112,7 @@ class GeoPoseViewApp:
                                       self.server.state.lat_file)
             self.session.start(files, self.options)
         except InputError as exc:
-            self.server.state.error = _one_line(exc)
+            self.server.state.error = error_line(exc)
             return
         self.server.state.status = "running"
         asyncio.ensure_future(self._follow_registration())
@@ -150,8 +146,8 @@ class GeoPoseViewApp:
         state.flush()
         try:
             review = await asyncio.get_running_loop().run_in_executor(None, review_from_folder, state.result_dir)
-        except InputError as exc:
-            state.error, state.status = _one_line(exc), "idle"
+        except Exception as exc:
+            state.error, state.status = error_line(exc), "idle"
             return
         await self.attach_views()
         with state:
@@ -188,8 +184,8 @@ class GeoPoseViewApp:
             if not state.result_folder or self.slicer_app is None:
                 raise InputError("there is no result to save yet: register a case or open a result folder first")
             state.saved = "wrote " + ", ".join(str(p) for p in write(Path(state.result_folder)))
-        except (InputError, OSError) as exc:
-            state.error = _one_line(exc)
+        except Exception as exc:
+            state.error = error_line(exc)
 
     # ------------------------------------------------------------------ page
     def _build_ui(self) -> None:
@@ -221,6 +217,7 @@ class GeoPoseViewApp:
                     v3.VBtn("Open result", click=self.open_result, id="btn-open",
                             disabled=("status === 'running' || status === 'loading'",))
                     v3.VAlert(text=("error",), type="error", density="compact", v_if="error", id="error")
+                    html.Div("result: {{ result_folder }}", classes="text-caption", id="result-folder", v_if="result_folder")
                     v3.VDivider()
                     with html.Div(v_for="q in quality", key="q.view", classes="quality"):
                         with html.Div(classes="d-flex align-center ga-2"):
@@ -245,10 +242,10 @@ class GeoPoseViewApp:
                     html.Div("{{ saved }}", classes="text-caption", id="saved", v_if="saved")
             with layout.content:
                 with html.Div(classes="d-flex", style="height: calc(100vh - 64px);"):
-                    with html.Div(style="flex: 1 1 0; position: relative; min-width: 300px;", id="view3d"):
+                    with html.Div(style="flex: 1.2 1 0; position: relative; min-width: 300px;", id="view3d"):
                         html.Div("3D view loading...", v_if="!views_ready", classes="pa-4 text-caption", id="views-loading")
                         self.views_node(layout)
-                    with html.Div(classes="d-flex flex-column ga-1 pa-1", style="flex: 1.3 1 0; overflow-y: auto;", id="overlays"):
+                    with html.Div(classes="d-flex flex-column ga-1 pa-1", style="flex: 1 1 0; overflow-y: auto;", id="overlays"):
                         html.Img(v_for="o in overlays", key="o.name", src=("o.src",), alt=("o.name",),
                                  style="width: 100%; height: auto;", classes="overlay")
 

@@ -48,7 +48,6 @@ def show_review(slicer_app, review) -> dict:
         view.renderer().GetActiveCamera().Elevation(20)
         view.renderer().GetActiveCamera().Azimuth(35)
         view.renderer().ResetCamera()
-        view.renderer().GetActiveCamera().Zoom(1.5)
         view.schedule_render()
     return nodes
 

@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import InputError
 from ..outputs import RECORD_NAME
 
-__all__ = ["CaseFiles", "Review", "Session", "case_files", "review_from_folder"]
+__all__ = ["CaseFiles", "Review", "Session", "case_files", "error_line", "files_from_fields", "review_from_folder"]
 
 #: File names a case folder is searched for (``geopose phantom`` / ``geopose demo`` write these).
 CTA_NAMES = ("cta.nii.gz", "cta.nii", "cta.nrrd", "cta.mha", "cta")
@@ -33,6 +33,16 @@ class CaseFiles:
     dsa_pa: Path
     dsa_lat: Path
     segmentation: Path | None = None
+
+
+def error_line(exc: BaseException) -> str:
+    """What the page shows for an exception: an :class:`InputError`'s one line, or for any other
+    error one line naming it and the file its traceback was written to (as the command line does)."""
+    from ..cli import one_line, write_traceback
+
+    if isinstance(exc, InputError):
+        return one_line(exc)
+    return f"internal error: {type(exc).__name__}: {one_line(exc)} (full traceback in {write_traceback(exc)}; please report it)"
 
 
 def _first(folder: Path, names) -> Path | None:
@@ -184,15 +194,8 @@ class Session:
         except RegistrationCancelled:
             self.status = "cancelled"
             return
-        except InputError as exc:
-            self.error, self.status = " ".join(str(exc).split()), "error"
-            return
-        except Exception as exc:  # an internal error: one line in the page, the traceback in a file
-            from ..cli import write_traceback
-
-            self.error = (f"internal error: {type(exc).__name__}: {' '.join(str(exc).split())} "
-                          f"(full traceback in {write_traceback(exc)}; please report it)")
-            self.status = "error"
+        except Exception as exc:
+            self.error, self.status = error_line(exc), "error"
             return
         maps = {k: v.prepared.map for k, v in done.case.views.items()}
         detectors = {k: run.detector for k, run in done.runs.items()}
