@@ -23,7 +23,7 @@ setup: $(BIN)/geopose
 chromium:
 	@if command -v chromium >/dev/null 2>&1; then :; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
-		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium libegl1 libgl1-mesa-dri >/dev/null; \
 	else echo "no chromium and not root with apt: the browser test will be skipped"; fi
 
 # Built when a Python 3.9 is found; without one, test_python39 skips and says so.

@@ -29,14 +29,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def write_demo_case(case: Path, seed: int = DEMO_SEED, spacing_mm: float = 1.0) -> dict:
+    """The demo's phantom subject in ``case`` (``geopose phantom``'s files) plus ``vessels.nii.gz``,
+    its arteries as the vessel label map; returns the phantom's timings (s)."""
+    timings = write_phantom(seed, case, spacing_mm=spacing_mm)
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    save_volume(labels.like(vessel_mask(labels.array).astype("uint8")), case / "vessels.nii.gz")
+    return timings
+
+
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     case = out / "case"
     print(f"[1/2] generating phantom subject {args.seed} in {case}")
-    timings = write_phantom(args.seed, case)
+    timings = write_demo_case(case, args.seed)
     print("      " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
-    labels = load_cta(case / "labels.nii.gz", check_hu=False)
-    save_volume(labels.like(vessel_mask(labels.array).astype("uint8")), case / "vessels.nii.gz")
     print("[2/2] registering the CTA to the PA + lateral DSA pair (vessel segmentation: the phantom's arteries)")
     record = register_files(
         case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", out, segmentation=case / "vessels.nii.gz",

@@ -209,7 +209,8 @@ def _progress_samples(page, until, timeout_s: float) -> list[tuple[float, str]]:
 
 def test_register_cancel_and_review_the_demo_case_in_chromium(chromium, phantom_case, tmp_path):
     out = tmp_path / "runs"
-    server = ViewServer("--case", str(phantom_case), "--out", str(out), "--port", str(_free_port()),
+    shutil.copytree(phantom_case, out / "demo_case")  # what the Demo case button writes (here at 2 mm), so it is reused
+    server = ViewServer("--out", str(out), "--port", str(_free_port()),
                         "--backend", "onnxruntime", "--iterations", "0")
     try:
         page = chromium.new_page()
@@ -225,7 +226,9 @@ def test_register_cancel_and_review_the_demo_case_in_chromium(chromium, phantom_
         page.click("#btn-register")
         error = page.wait_for_selector("#error", timeout=20000).inner_text()
         assert "does not exist" in error and "Traceback" not in error and len(error.strip().splitlines()) == 1
-        page.fill("#field-case", str(phantom_case))
+        page.click("#btn-demo")
+        page.wait_for_function(f"document.querySelector('#field-case').value === {json.dumps(str(out / 'demo_case'))}",
+                               timeout=20000)
 
         # Cancel: the run stops, the page says so, and no result is written
         page.click("#btn-register")

@@ -117,6 +117,25 @@ class GeoPoseViewApp:
         self.server.state.status = "running"
         asyncio.ensure_future(self._follow_registration())
 
+    async def demo_case(self) -> None:
+        """Write the demo's phantom case (``geopose demo``'s, 1 mm) into the output folder, or reuse it,
+        and fill the case field with it."""
+        from ..demo import write_demo_case
+
+        state = self.server.state
+        case = self.session.out / "demo_case"
+        if not (case / "vessels.nii.gz").is_file():
+            with state:
+                state.error, state.status, state.message = "", "loading", f"writing the demo phantom case into {case}..."
+            try:
+                await asyncio.get_running_loop().run_in_executor(None, write_demo_case, case)
+            except Exception as exc:
+                with state:
+                    state.error, state.status, state.message = error_line(exc), "idle", ""
+                return
+        with state:
+            state.case_dir, state.status, state.message = str(case), "idle", "demo case ready: press Register"
+
     def cancel(self) -> None:
         self.session.cancel()
         self.server.state.message = "cancelling at the next step..."
@@ -199,6 +218,8 @@ class GeoPoseViewApp:
                 drawer.width = 420
                 with html.Div(classes="pa-3 d-flex flex-column ga-2"):
                     html.Div("Case: a folder (cta.nii.gz, dsa_pa.dcm, dsa_lat.dcm) or the three files", classes="text-caption")
+                    v3.VBtn("Demo case", click=self.demo_case, id="btn-demo", size="small", variant="tonal",
+                            disabled=("status === 'running' || status === 'loading'",))
                     v3.VTextField(v_model=("case_dir",), label="case folder", density="compact", hide_details=True, id="field-case")
                     v3.VTextField(v_model=("cta_file",), label="CTA (file or DICOM folder)", density="compact", hide_details=True)
                     v3.VTextField(v_model=("pa_file",), label="PA DSA", density="compact", hide_details=True)
@@ -250,7 +271,8 @@ class GeoPoseViewApp:
                                  style="width: 100%; height: auto;", classes="overlay")
 
 
-def serve(host: str, port: int, token: str | None, session: Session, options, fields: dict[str, str], open_result: bool) -> None:
+def serve(host: str, port: int, token: str | None, session: Session, options, fields: dict[str, str], open_result: bool,
+          demo: bool = False) -> None:
     """Build the app and serve it until interrupted; prints the page's address once it listens."""
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     from trame.app import get_server
@@ -269,6 +291,8 @@ def serve(host: str, port: int, token: str | None, session: Session, options, fi
     def ready(**_):
         print(f"GeoPose view: open {page_url(host, server.port, token)}", flush=True)
         app.attach_views()
+        if demo:
+            asyncio.ensure_future(app.demo_case())
         if open_result:
             asyncio.ensure_future(app.open_result())
 

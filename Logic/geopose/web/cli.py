@@ -23,6 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cta", default="", help="CTA volume (NIfTI, NRRD, MHA or a DICOM series folder)")
     p.add_argument("--dsa-pa", default="", help="PA DSA run")
     p.add_argument("--dsa-lat", default="", help="lateral DSA run")
+    p.add_argument("--demo", action="store_true", help="write the demo's phantom case (geopose demo's, 1 mm) into --out and fill it in")
     p.add_argument("--result", default="", help="an existing result folder to open at start (result.json + overlays)")
     p.add_argument("--out", help="folder the registrations are written into, one run-N folder each (default: a new temporary folder)")
     p.add_argument("--host", default=LOOPBACK, help="address to listen on (default 127.0.0.1: this machine only)")
@@ -50,5 +51,5 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="geopose-view-"))
     fields = {"case_dir": args.case, "cta_file": args.cta, "pa_file": args.dsa_pa, "lat_file": args.dsa_lat,
               "result_dir": args.result}
-    serve(args.host, args.port, token, Session(out), options, fields, open_result=bool(args.result))
+    serve(args.host, args.port, token, Session(out), options, fields, open_result=bool(args.result), demo=args.demo)
     return 0
