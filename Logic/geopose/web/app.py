@@ -78,7 +78,7 @@ class GeoPoseViewApp:
         state.trame__title = "GeoPose"
         state.update({"case_dir": "", "cta_file": "", "pa_file": "", "lat_file": "", "result_dir": "", **fields})
         state.update({"status": "idle", "error": "", "stage": "", "message": "", "fraction": 0.0, "elapsed": "",
-                      "ticks": 0, "overlays": [], "quality": [], "stages": [], "saved": "", "result_folder": "",
+                      "overlays": [], "quality": [], "stages": [], "saved": "", "result_folder": "",
                       "notes": [], "views_ready": False})
         self._build_ui()
 
@@ -147,7 +147,6 @@ class GeoPoseViewApp:
             with state:
                 state.stage, state.message, state.fraction = p.stage, p.message[:90], round(100 * p.fraction, 1)
                 state.elapsed = f"{self.session.elapsed_s():.1f} s"
-                state.ticks += 1
             await asyncio.sleep(TICK_S)
         with state:
             state.status = self.session.status
@@ -178,7 +177,6 @@ class GeoPoseViewApp:
 
         state = self.server.state
         show_review(self.slicer_app, review)
-        self.review = review
         state.result_folder = str(review.folder)
         state.overlays = [{"name": n, "src": _png_data_url(review.folder / n)} for n in OVERLAY_NAMES]
         state.quality = quality_rows(review.record)

@@ -166,10 +166,6 @@ class Session:
         """Ask the running registration to stop at its next step."""
         self._cancel.set()
 
-    def wait(self, timeout_s: float | None = None) -> None:
-        if self._thread is not None:
-            self._thread.join(timeout_s)
-
     def elapsed_s(self) -> float:
         return time.perf_counter() - self._started if self._started else 0.0
 
