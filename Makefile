@@ -3,7 +3,7 @@ PY ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test test-slow fuzz bench clean
+.PHONY: setup demo test test-slow fuzz bench clean chromium view
 
 # Slicer 5.8's Python (3.9) with the packages it ships at its versions, for Testing/Python/test_python39.py:
 # .venv-py39 adds GeoPose's requirements (the torch-free registration runs there), .venv-py39-slicer58
@@ -16,10 +16,18 @@ $(BIN)/geopose: pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e ".[torch,test]"
+	$(BIN)/python -m pip install -q -e ".[torch,test,web]"
 	touch $@
 
 setup: $(BIN)/geopose
+
+# Debian's Chromium for the browser test (Testing/Python/test_web.py, Playwright drives it; Playwright's own
+# browser download is not used). Installed with apt when missing and run as root; otherwise the test skips and says so.
+chromium:
+	@if command -v chromium >/dev/null 2>&1; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium libegl1 libgl1-mesa-dri >/dev/null; \
+	else echo "no chromium and not root with apt: the browser test will be skipped"; fi
 
 # Built when a Python 3.9 is found; without one, test_python39 skips and says so.
 $(VENV39)/.installed: Testing/Python39/requirements.txt Testing/Python39/slicer58.txt
@@ -35,10 +43,14 @@ $(VENV39_SLICER)/.installed: Testing/Python39/slicer58.txt
 demo: setup
 	$(BIN)/geopose demo --out demo_out
 
-test: setup $(VENV39)/.installed $(VENV39_SLICER)/.installed
+# The browser app on http://127.0.0.1:8080/ (README "In the browser").
+view: setup
+	$(BIN)/geopose view
+
+test: setup $(VENV39)/.installed $(VENV39_SLICER)/.installed chromium
 	$(BIN)/python -m pytest -q
 
-test-slow: setup
+test-slow: setup chromium
 	GEOPOSE_SLOW=1 $(BIN)/python -m pytest -q
 
 # Input fuzz suite: 10,000 seeded mutations of every input kind and 1,000 CLI-level situations (docs/fuzz.md); the default

@@ -222,3 +222,28 @@ def test_result_table_and_mrb_round_trip(scene, tmp_path):
     assert tab2.GetCellText(0, 0) == "PA" and float(tab2.GetCellText(0, 1)) == 0.5
     with pytest.raises(ValueError, match=".mrb"):
         mrml.save_mrb(scene, tmp_path / "case.zip")
+
+
+def test_detector_image_model_puts_each_pixel_where_its_ray_meets_the_detector(scene):
+    from vtk.util import numpy_support
+
+    from geopose.viz import to_uint8
+
+    cta, _ = _cta()
+    pose_c = _pose(C.VIEW_LAT_PLUS)
+    image = np.random.default_rng(1).normal(size=DET.shape)
+    node = mrml.detector_image_model_node(scene, image, DET, cta.centred_to_ras @ pose_c, "GeoPose LAT DSA on detector")
+    poly = node.GetPolyData()
+    points = numpy_support.vtk_to_numpy(poly.GetPoints().GetData())
+    st = numpy_support.vtk_to_numpy(poly.GetPointData().GetTCoords())
+    _, world = source_and_detector_points(pose_c, DET)  # (rows, cols, 3), centred frame
+    to_ras = lambda p: p @ cta.centred_to_ras[:3, :3].T + cta.centred_to_ras[:3, 3]  # noqa: E731
+    for p, (s, t) in zip(points, st):
+        row, col = round(t * (DET.rows - 1)), round(s * (DET.cols - 1))
+        np.testing.assert_allclose(p, to_ras(world[row, col]), atol=1e-6)
+    texture = node.GetDisplayNode().GetTextureImageDataConnection().GetProducer().GetOutputDataObject(0)
+    assert texture.GetDimensions() == (DET.cols, DET.rows, 1)
+    pixels = numpy_support.vtk_to_numpy(texture.GetPointData().GetScalars()).reshape(DET.rows, DET.cols)
+    np.testing.assert_array_equal(pixels, to_uint8(image))  # texture (s, t) = (0, 0) is image row 0, column 0
+    with pytest.raises(ValueError, match="does not match"):
+        mrml.detector_image_model_node(scene, image[1:], DET, cta.centred_to_ras @ pose_c, "wrong")

@@ -45,7 +45,8 @@ def test_module_imports_exist_in_the_library():
 def test_library_never_imports_mrml_outside_its_package():
     offenders = []
     for path in (REPO / "Logic" / "geopose").rglob("*.py"):
-        if "mrml" in path.relative_to(REPO / "Logic" / "geopose").parts:
+        # mrml is the adapters; web (geopose view, the web extra) is a front end on MRML like the Slicer module
+        if {"mrml", "web"} & set(path.relative_to(REPO / "Logic" / "geopose").parts):
             continue
         text = path.read_text()
         if re.search(r"^\s*(import slicer|from slicer|from \.+mrml|import geopose\.mrml|from geopose\.mrml)", text, re.M):

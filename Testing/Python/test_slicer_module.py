@@ -264,7 +264,8 @@ def installs(monkeypatch):
         record(args, args[args.index("-c") + 1] if "-c" in args else None)
 
     monkeypatch.setattr(slicer.util, "pip_install", pip_install_58)
-    monkeypatch.setattr(slicer.util, "executePythonModule", lambda module, args, **kw: record(args))
+    # Slicer 5.12's packaging calls slicer.util.executePythonModule, which the slicer-core 5.11 wheel's util lacks
+    monkeypatch.setattr(slicer.util, "executePythonModule", lambda module, args, **kw: record(args), raising=False)
     try:  # Slicer 5.12: pip_ensure -> packaging.pip_install(requirements, constraints=...)
         packaging = importlib.import_module("slicer.packaging")
     except ImportError:

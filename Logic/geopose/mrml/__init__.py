@@ -42,6 +42,7 @@ from .plane import (
 from .outputs import (
     camera_node,
     camera_to_ras_points,
+    detector_image_model_node,
     frustum_model_node,
     pose_transform_node,
     projected_segmentation_node,
@@ -51,7 +52,7 @@ from .outputs import (
 )
 
 __all__ = [
-    "camera_node", "camera_to_ras_points", "detector_ijk_to_ras", "dsa_sequence_node", "frames_from_node",
+    "camera_node", "camera_to_ras_points", "detector_image_model_node", "detector_ijk_to_ras", "dsa_sequence_node", "frames_from_node",
     "frames_from_sequence", "frustum_model_node",
     "geometry_from_attributes", "labelmap_from_segmentation", "load_mrb", "matrix_from_vtk", "matrix_to_vtk",
     "new_scene", "output_node", "plane_volume_node", "pose_transform_node", "prepare_scene", "project_labels",

@@ -9,6 +9,7 @@ optional existing ``node`` to update in place (a re-run then adds no nodes).
 from __future__ import annotations
 
 import math
+import weakref
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -17,10 +18,11 @@ import vtk
 
 from ..geometry.detector import AP_REORIENT, Detector
 from ..render.numpy_drr import NumpyKernel
+from ..viz import to_uint8
 from ..volume import Volume
 from .plane import detector_ijk_to_ras, detector_index_to_camera
 from .scene import matrix_from_vtk, matrix_to_vtk, output_node
-from .volumes import segmentation_from_masks
+from .volumes import image_data_from_array, segmentation_from_masks
 
 __all__ = [
     "PROJECTION_THRESHOLD_VOXELS",
@@ -29,6 +31,7 @@ __all__ = [
     "camera_to_ras_points",
     "camera_node",
     "frustum_model_node",
+    "detector_image_model_node",
     "project_labels",
     "projected_segmentation_node",
     "result_table_node",
@@ -36,6 +39,8 @@ __all__ = [
 
 #: A pixel belongs to a projected segment when its ray runs this many voxel sizes through it.
 PROJECTION_THRESHOLD_VOXELS = 0.25
+#: Texture sources of :func:`detector_image_model_node`, kept alive with their scene.
+_TEXTURES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 def pose_transform_node(
@@ -100,6 +105,37 @@ def frustum_model_node(
     node.SetAndObservePolyData(poly)
     node.CreateDefaultDisplayNodes()
     node.GetDisplayNode().SetColor(*color)
+    return node
+
+
+def detector_image_model_node(
+    scene: "slicer.vtkMRMLScene", image: np.ndarray, detector: Detector, pose_ras: np.ndarray, name: str, node=None
+) -> "slicer.vtkMRMLModelNode":
+    """A flat model of the detector (RAS mm, its corners at the corner pixels' centres) textured with
+    ``image (H, W)`` windowed to 8 bits (1st-99.5th percentile): the image where the C-arm saw it, in a
+    3D view. (The texture is a display connection, not stored in a saved scene; a scene keeps
+    the image as :func:`~geopose.mrml.plane_volume_node`.)"""
+    image = np.asarray(image)
+    if image.shape != detector.shape:
+        raise ValueError(f"image of shape {image.shape} does not match the {detector.rows}x{detector.cols} detector")
+    corners = camera_to_ras_points(pose_ras, detector)["corners"]
+    plane = vtk.vtkPlaneSource()  # texture (0, 0) at row 0, column 0; s along the columns, t along the rows
+    plane.SetOrigin(*corners[0])
+    plane.SetPoint1(*corners[1])
+    plane.SetPoint2(*corners[3])
+    plane.Update()
+    texture = vtk.vtkTrivialProducer()
+    texture.SetOutput(image_data_from_array(to_uint8(image)[None]))
+    node = output_node(scene, "vtkMRMLModelNode", name, node)
+    node.SetAndObservePolyData(plane.GetOutput())
+    node.CreateDefaultDisplayNodes()
+    display = node.GetDisplayNode()
+    display.SetColor(1.0, 1.0, 1.0)
+    display.SetAmbient(1.0)
+    display.SetDiffuse(0.0)
+    display.SetBackfaceCulling(0)
+    display.SetTextureImageDataConnection(texture.GetOutputPort())
+    _TEXTURES.setdefault(scene, {})[node.GetID()] = texture
     return node
 
 

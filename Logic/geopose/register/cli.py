@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from ..consistency import ALLOW_ID_MISMATCH_OPTION, check_inputs_belong_together
 from ..cta import load_cta
@@ -18,9 +21,10 @@ from ..options import BACKENDS, DEVICES, RegistrationOptions
 from ..outputs import OutputFolder
 from .evaluate import truth_for, truth_metrics
 from .pipeline import register_case, resolve_engine
-from .progress import ConsoleProgress
+from .progress import CancelCheck, ConsoleProgress, ProgressCallback
 from .record import build_record
 from .report import OVERLAY_NAMES, write_overlays
+from .results import CaseRegistration
 
 #: The options ``geopose register`` (and ``geopose bench``) take, by their RegistrationOptions names.
 OPTION_ARGS = ("backend", "device", "refine_steps", "iterations", "tto_px", "render_px", "model_clip_percentiles",
@@ -86,7 +90,26 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def register_files(
+@dataclass
+class FileRegistration:
+    """A registration of files and what it read: the record written as ``result.json``, the
+    registration, the CTA (its centred frame is the poses' world frame), the DSA runs by view key,
+    and the phantom's carotid centreline points (mm, centred frame) when ``truth.json`` was beside the CTA."""
+
+    record: dict
+    case: CaseRegistration
+    cta: object
+    runs: dict
+    carotid_mm: np.ndarray | None
+
+
+def register_files(cta_path: str | Path, dsa_pa: str | Path, dsa_lat: str | Path, out: str | Path, **kwargs) -> dict:
+    """Read the files, register, and write the overlays and then ``result.json`` into ``out``; returns the record
+    (:func:`register_and_write` takes the same arguments)."""
+    return register_and_write(cta_path, dsa_pa, dsa_lat, out, **kwargs).record
+
+
+def register_and_write(
     cta_path: str | Path,
     dsa_pa: str | Path,
     dsa_lat: str | Path,
@@ -101,16 +124,17 @@ def register_files(
     hu_offset: float = 0.0,
     cta_series_uid: str | None = None,
     allow_id_mismatch: bool = False,
-    progress=None,
-) -> dict:
-    """Read the files, register, and write the overlays and then ``result.json`` into ``out``; returns the record.
+    progress: ProgressCallback | None = None,
+    cancel: CancelCheck | None = None,
+) -> FileRegistration:
+    """Read the files, register, and write the overlays and then ``result.json`` into ``out``.
 
     ``out`` is checked (it must hold none of the inputs), locked and cleared first
-    (:class:`~geopose.outputs.OutputFolder`); a run that fails or is killed leaves no ``result.json``.
-    Before any work the inputs are read and checked to belong together
-    (:func:`~geopose.consistency.check_inputs_belong_together`). A ``truth.json`` next to the CTA (a
-    ``geopose phantom`` case) adds accuracy metrics; one that is not that CTA's is ignored with a note.
-    ``overrides[view]`` are ``read_dsa`` keywords.
+    (:class:`~geopose.outputs.OutputFolder`); a run that fails, is cancelled (``cancel()`` returned True)
+    or is killed leaves no ``result.json``. Before any work the inputs are read and checked to belong
+    together (:func:`~geopose.consistency.check_inputs_belong_together`). A ``truth.json`` next to the
+    CTA (a ``geopose phantom`` case) adds accuracy metrics; one that is not that CTA's is ignored with a
+    note. ``overrides[view]`` are ``read_dsa`` keywords. Without ``progress`` a console bar is drawn.
     """
     options = options or RegistrationOptions()
     overrides = overrides or {}
@@ -130,7 +154,7 @@ def register_files(
         bar = ConsoleProgress() if progress is None else None
         try:
             case = register_case(cta, runs, models=model_set, options=options, cranium_mask=cranium, segmentation=seg,
-                                 progress=progress or bar)
+                                 progress=progress or bar, cancel=cancel)
         finally:
             if bar is not None:
                 bar.finish()
@@ -142,9 +166,10 @@ def register_files(
                 inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}
         record = build_record(case, runs, inputs=inputs, truth_metrics=truth_metrics(case, runs, truth) if truth else None)
         record["notes"] += [note for note in (truth_note, cta.metadata.get("orientation_note")) if note]
-        write_overlays(case, folder, truth.carotid_points_mm if truth else None)
+        carotid_mm = truth.carotid_points_mm if truth else None
+        write_overlays(case, folder, carotid_mm)
         folder.commit(record)
-    return record
+    return FileRegistration(record, case, cta, runs, carotid_mm)
 
 
 def print_summary(record: dict, out: Path) -> None:

@@ -1,0 +1,77 @@
+"""The MRML scene the page's 3D view shows for a :class:`~.session.Review`, built with the
+:mod:`geopose.mrml` adapters: the CTA (volume rendering), per view the pose transform, the C-arm
+frustum, the DSA MAP as a texture on its detector plane and as a plane volume (what a saved
+scene keeps), and saving the scene (.mrb) and the transforms.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .. import mrml
+from ..errors import InputError
+
+__all__ = ["VIEW_COLOURS", "VR_PRESET", "show_review", "save_scene", "save_transforms"]
+
+#: Frustum colour per view key (rgb 0-1).
+VIEW_COLOURS = {"pa": (0.25, 0.55, 1.0), "lat": (0.2, 0.85, 0.35)}
+#: Volume-rendering preset of the CTA (Slicer's presets): bone and contrast-filled vessels.
+VR_PRESET = "CT-Chest-Contrast-Enhanced"
+
+
+def _title(record: dict, key: str) -> str:
+    return record["views"][key].get("role", key.upper())
+
+
+def show_review(slicer_app, review) -> dict:
+    """Replace the scene's contents with ``review``'s nodes; returns them by name (``cta``, ``<key>Pose``,
+    ``<key>Frustum``, ``<key>Image``, ``<key>MAP``)."""
+    scene = slicer_app.scene
+    for cls in ("vtkMRMLScalarVolumeNode", "vtkMRMLModelNode", "vtkMRMLLinearTransformNode"):
+        for node in list(scene.GetNodesByClass(cls)):
+            scene.RemoveNode(node)
+    nodes = {"cta": mrml.volume_to_node(scene, review.cta, "CTA")}
+    nodes["cta"].CreateDefaultDisplayNodes()
+    slicer_app.display_manager.show_volume(nodes["cta"], vr_preset=VR_PRESET)
+    for key, view in review.record["views"].items():
+        pose_ras = np.asarray(view["pose_ras"], dtype=float)
+        det, title = review.detectors[key], _title(review.record, key)
+        nodes[f"{key}Pose"] = mrml.pose_transform_node(scene, pose_ras, f"GeoPose {title} pose")
+        nodes[f"{key}Frustum"] = mrml.frustum_model_node(scene, pose_ras, det, f"GeoPose {title} C-arm", VIEW_COLOURS.get(key, (1, 1, 0)))
+        nodes[f"{key}Image"] = mrml.detector_image_model_node(scene, review.maps[key], det, pose_ras, f"GeoPose {title} DSA on detector")
+        nodes[f"{key}MAP"] = mrml.plane_volume_node(scene, review.maps[key], det, pose_ras, f"GeoPose {title} MAP")
+        nodes[f"{key}MAP"].GetDisplayNode().SetVisibility(False)
+    for view in slicer_app.view_manager.get_threed_views():
+        view.reset_camera()
+        view.renderer().GetActiveCamera().Elevation(20)
+        view.renderer().GetActiveCamera().Azimuth(35)
+        view.renderer().ResetCamera()
+        view.schedule_render()
+    return nodes
+
+
+def save_scene(slicer_app, folder: Path) -> Path:
+    """The whole scene as ``folder/geopose_scene.mrb``."""
+    if not list(slicer_app.scene.GetNodesByClass("vtkMRMLLinearTransformNode")):
+        raise InputError("there is no result to save yet: register a case or open a result folder first")
+    return mrml.save_mrb(slicer_app.scene, Path(folder) / "geopose_scene.mrb")
+
+
+def save_transforms(slicer_app, folder: Path) -> list[Path]:
+    """Each pose transform (camera-to-RAS, mm) as ``folder/<node name>.h5`` (ITK transform files Slicer reads)."""
+    import slicer
+
+    nodes = list(slicer_app.scene.GetNodesByClass("vtkMRMLLinearTransformNode"))
+    if not nodes:
+        raise InputError("there is no result to save yet: register a case or open a result folder first")
+    written = []
+    for node in nodes:
+        path = Path(folder) / (node.GetName().replace(" ", "_") + ".h5")
+        storage = slicer.vtkMRMLTransformStorageNode()
+        storage.SetFileName(str(path))
+        if not storage.WriteData(node):
+            raise OSError(f"could not write {path}: check the folder is writable")
+        written.append(path)
+    return written
