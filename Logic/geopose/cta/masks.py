@@ -14,11 +14,8 @@ from ..volume import Volume
 from .io import sitk_from_volume
 from ..errors import InputError
 
-<<<<<<< HEAD
-__all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU", "DETACH_RADIUS_MM", "MARROW_MAX_MM2", "BODY_HU", "CONTRAST_SPAN_MM"]
-=======
-__all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU"]
->>>>>>> dsamask
+__all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU", "MARROW_MAX_MM2",
+           "BODY_HU", "BODY_SURFACE_MM", "CONTRAST_SPAN_MM"]
 
 #: Radius (mm) of the closing that seals sutures, foramina and thin bone before filling.
 CLOSING_RADIUS_MM = 7.0
