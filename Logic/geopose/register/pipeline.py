@@ -384,6 +384,7 @@ def register_case(
                 registration.kept_learned = APPROXIMATE_VESSELS_NOTE.format(rot=rot, mm=mm)
                 notes.append(registration.kept_learned)
                 finals, registration.patient_pose = dict(learned), X_learned
+                registration.chosen_start = SEARCHED_START if registration.search else "Refine"
         if joint and not registration.vessel_evidence:
             registration.bound = bound_move(registration.patient_pose)
             registration.patient_pose = registration.bound.patient_pose
