@@ -26,6 +26,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "Testing" / "fuzz"))
 
 from ct_encodings import ENCODINGS, INTERCEPT, head_hu, write_ct_series  # noqa: E402
+from cli_targets import retagged  # noqa: E402
 from jpeg_ls import encode_jpeg_ls  # noqa: E402
 
 from geopose.consistency import check_inputs_belong_together  # noqa: E402
@@ -273,18 +274,10 @@ def test_compressed_run_decodes_into_one_float32_copy(tmp_path: Path):
 # ----------------------------------------------------------------- 5. inputs that cannot belong together
 
 
-def _variant(src: Path, dst: Path, **tags) -> Path:
-    ds = pydicom.dcmread(src)
-    for key, value in tags.items():
-        setattr(ds, key, value)
-    ds.save_as(dst, enforce_file_format=True)
-    return dst
-
-
 @pytest.mark.parametrize("tags, word", [({"PatientID": "SOMEONE-ELSE"}, "PatientID"),
                                         ({"StudyInstanceUID": generate_uid()}, "StudyInstanceUID")])
 def test_lateral_of_another_patient_or_study_is_refused(case, capsys, tags: dict, word: str):
-    lat = _variant(case["lat"], case["root"] / "lat_other.dcm", **tags)
+    lat = retagged(case["lat"], case["root"] / "lat_other.dcm", **tags)
     before = _checksums(case["cta"].parent, lat)
     code, err, seconds = _register(capsys, case["cta"], case["pa"], lat, case["root"] / "out")
     _refused(code, err, seconds, word, "--allow-id-mismatch")
@@ -296,7 +289,7 @@ def test_the_same_run_for_both_views_says_so(case, capsys):
     code, err, seconds = _register(capsys, case["cta"], case["pa"], case["pa"], case["root"] / "out")
     _refused(code, err, seconds, "are the same data", "one each")
     assert "swap" not in err
-    copy = _variant(case["pa"], case["root"] / "copy.dcm", PatientName="Copy^Same")  # the same instance, rewritten
+    copy = retagged(case["pa"], case["root"] / "copy.dcm", PatientName="Copy^Same")  # the same instance, rewritten
     code, err, seconds = _register(capsys, case["cta"], case["pa"], copy, case["root"] / "out")
     _refused(code, err, seconds, "the same DICOM instance")
 
@@ -309,7 +302,7 @@ def test_cta_series_of_another_patient_is_refused(case, capsys):
 
 
 def test_override_accepts_differing_ids_and_records_it(case):
-    runs = {"pa": read_dsa(case["pa"]), "lat": read_dsa(_variant(case["lat"], case["root"] / "l.dcm", PatientID="ANON-2"))}
+    runs = {"pa": read_dsa(case["pa"]), "lat": read_dsa(retagged(case["lat"], case["root"] / "l.dcm", PatientID="ANON-2"))}
     with pytest.raises(InputError, match="PatientID"):
         check_inputs_belong_together(load_cta(case["cta"]), runs)
     entry = check_inputs_belong_together(load_cta(case["cta"]), runs, allow_id_mismatch=True)

@@ -194,7 +194,7 @@ def _special_file(rng: np.random.Generator, root: Path, case_dir: Path) -> tuple
     return f"{kind} as {role}", _argv(inputs, case_dir / "out"), (word,), [p for p in inputs.values() if not str(p).startswith("/dev/")]
 
 
-def _retagged(src: Path, dst: Path, **tags) -> Path:
+def retagged(src: Path, dst: Path, **tags) -> Path:
     ds = pydicom.dcmread(src)
     for key, value in tags.items():
         setattr(ds, key, value)
@@ -209,10 +209,10 @@ def _mismatch(rng: np.random.Generator, root: Path, case_dir: Path) -> tuple[str
     words: tuple[str, ...]
     if variant in ("lat_patient", "pa_patient"):
         role = variant[:-8]
-        _retagged(inputs[role], inputs[role], PatientID=other)
+        retagged(inputs[role], inputs[role], PatientID=other)
         words = ("PatientID", other, "--allow-id-mismatch")
     elif variant == "lat_study":
-        _retagged(inputs["lat"], inputs["lat"], StudyInstanceUID=generate_uid(entropy_srcs=[other]))
+        retagged(inputs["lat"], inputs["lat"], StudyInstanceUID=generate_uid(entropy_srcs=[other]))
         words = ("StudyInstanceUID", "--allow-id-mismatch")
     elif variant == "same_path":
         inputs["lat"] = inputs["pa"]
@@ -221,13 +221,13 @@ def _mismatch(rng: np.random.Generator, root: Path, case_dir: Path) -> tuple[str
         shutil.copy(inputs["pa"], inputs["lat"])
         words = ("same data", "one each")
     elif variant == "same_instance":
-        _retagged(inputs["pa"], inputs["lat"], PatientName=f"Copy^{other}")
+        retagged(inputs["pa"], inputs["lat"], PatientName=f"Copy^{other}")
         words = ("same DICOM instance", "one each")
     else:
         series = case_dir / "ct"
         shutil.copytree(root / "ct_series", series)
         for f in series.iterdir():
-            _retagged(f, f, PatientID=other)
+            retagged(f, f, PatientID=other)
         inputs["cta"] = series
         words = ("CTA", other, "--allow-id-mismatch")
     return variant, _argv(inputs, case_dir / "out"), words, list(inputs.values())
