@@ -10,7 +10,9 @@ import argparse
 from pathlib import Path
 
 from . import contract as C
+from .cta import load_cta, save_volume
 from .phantom.cli import write_phantom
+from .phantom.labels import vessel_mask
 from .register.cli import print_summary, register_files
 from .options import BACKENDS, RegistrationOptions
 
@@ -29,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def write_demo_case(case: Path, seed: int = DEMO_SEED, spacing_mm: float = 1.0) -> dict:
     """The demo's phantom subject in ``case`` (``geopose phantom``'s files) plus ``vessels.nii.gz``,
-    its arteries as the vessel label map; returns the phantom's timings (s)."""
+    its arteries as the vessel label map (a user's segmentation, as the browser app's demo case reads it;
+    ``geopose demo`` registers without it); returns the phantom's timings (s)."""
     timings = write_phantom(seed, case, spacing_mm=spacing_mm)
     labels = load_cta(case / "labels.nii.gz", check_hu=False)
     save_volume(labels.like(vessel_mask(labels.array).astype("uint8")), case / "vessels.nii.gz")
@@ -40,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     case = out.with_name(out.name + "_case")  # beside the results: an --out folder may hold no input
     print(f"[1/2] generating phantom subject {args.seed} in {case}")
-    timings = write_demo_case(case, args.seed)
+    timings = write_phantom(args.seed, case)
     print("      " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
     print("[2/2] registering the CTA to the PA + lateral DSA pair as a user would: the CTA and the two runs only "
           "(masks computed from them; the phantom's labels and truth serve only to score the result)")
