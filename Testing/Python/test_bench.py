@@ -141,7 +141,7 @@ def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     assert (out / "tto_convergence.png").stat().st_size > 10_000
     assert (out / "cases" / "phantom-777001.json").is_file()  # resumable
     # the default rows ran the user's path: masks computed from the CTA, not the phantom's labels
-    assert "given" not in case["masks"]["vessels"] and "given" not in case["masks"]["cranium"]
+    assert case["masks"]["vessels"].startswith("computed from the CTA") and case["masks"]["cranium"].startswith("computed")
 
 
 def test_dense_opacification_cases_get_their_own_section_and_targets():
