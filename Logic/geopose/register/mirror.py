@@ -26,7 +26,7 @@ from ..render.renderer import Renderer, TorchRenderer, make_renderer
 from ..render.volume import RenderVolume
 from ..volume import Volume
 from .biplane import view_poses
-from .objective import objective_value
+from .objective import pair_objective
 
 __all__ = ["MIRROR_TTO_ITERATIONS", "MIRROR_LOSS_MARGIN", "MirrorTest", "mirrored_volume", "mirror_test"]
 
@@ -75,10 +75,6 @@ def mirrored_volume(volume: RenderVolume) -> RenderVolume:
     return RenderVolume(cta, masks, finest_spacing_mm=volume.finest_spacing_mm)
 
 
-def _pair_loss(renderer: Renderer, poses: Mapping[str, np.ndarray], views: Mapping[str, PreparedDSA]) -> float:
-    return float(sum(objective_value(renderer, poses[k], views[k]).loss for k in views))
-
-
 def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], patient_pose: np.ndarray,
                 rig: Mapping[str, np.ndarray], device: str = "cpu") -> MirrorTest:
     """The result at ``patient_pose`` ``(4, 4)`` (camera poses ``X @ A_v``, ``rig``) against the mirrored CTA
@@ -90,4 +86,4 @@ def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], patient_po
     result = test_time_optimise(TorchRenderer(mirrored, device), tto_views(views, start), TTOSchedule(MIRROR_TTO_ITERATIONS),
                                 rig=rig)
     judge = make_renderer(mirrored, renderer.engine, device)
-    return MirrorTest(_pair_loss(renderer, start, views), _pair_loss(judge, result.poses, views))
+    return MirrorTest(pair_objective(renderer, start, views), pair_objective(judge, result.poses, views))

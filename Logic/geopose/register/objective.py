@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -27,7 +27,7 @@ from ..metrics.similarity import mncc, ncc
 from ..render.renderer import Renderer
 
 __all__ = ["Objective", "PAPER_OBJECTIVE", "ObjectiveValue", "SILHOUETTE_MODELS", "clip_like_target", "fit_like_target",
-           "silhouette_features", "combine", "objective_value", "generalized_dice_loss"]
+           "silhouette_features", "combine", "objective_value", "pair_objective", "generalized_dice_loss"]
 
 #: A numpy array or a torch tensor (the fitted silhouette serves both engines).
 Array = Any
@@ -168,3 +168,9 @@ def objective_value(renderer: Renderer, pose: np.ndarray, prepared: PreparedDSA,
     dice = generalized_dice_loss(1.0 / (1.0 + np.exp(-cranium.astype(np.float64))), mask.astype(np.float64))
     vessel = ncc(prepared.tto_vessels, vessels) if objective.vessel_weight > 0 and vessels.max() > 0 else None
     return ObjectiveValue(float(combine(objective, score, dice, vessel)), score, dice, vessel)
+
+
+def pair_objective(renderer: Renderer, poses: "Mapping[str, np.ndarray]", views: "Mapping[str, PreparedDSA]") -> float:
+    """The objective of every view in ``views`` at its pose in ``poses``, summed: how starts, TTO runs and
+    hypotheses are compared."""
+    return float(sum(objective_value(renderer, poses[k], views[k]).loss for k in views))

@@ -64,7 +64,7 @@ from .calibration import calibrate, calibrated_init
 from .case import TTO_PX_CPU, TTO_PX_CUDA, VIEW_KEYS, PreparedCase, prepare_case, silhouette_dice
 from .evidence import view_evidence
 from .mirror import mirror_test
-from .objective import PAPER_OBJECTIVE, objective_value
+from .objective import PAPER_OBJECTIVE, pair_objective
 from .progress import CancelCheck, Monitor, ProgressCallback
 from .quality import AGREEMENT_DEG, AGREEMENT_MM, VIEW_DISAGREEMENT_MM, Quality, assess
 from .refine import greedy_refine, refine_from_starts
@@ -223,11 +223,6 @@ def _consistency_doubts(key: str, init: InitEstimate, label: int, registration: 
     return tuple(doubts)
 
 
-def _pair_objective(renderer: Renderer, poses: Mapping[str, np.ndarray], case: PreparedCase) -> float:
-    """The objective (``objective.py``) of both views at ``poses``, summed: how starts and TTO runs are compared."""
-    return sum(objective_value(renderer, poses[k], case.views[k]).loss for k in VIEW_KEYS)
-
-
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether two poses ``(4, 4)`` are one start: rotations within 1e-4, positions within 0.01 mm."""
     return bool(np.allclose(a[:3, :3], b[:3, :3], atol=1e-4) and np.allclose(a[:3, 3], b[:3, 3], atol=0.01))
@@ -348,7 +343,8 @@ def register_case(
             if registration.vessel_evidence:
                 candidates |= {"Init": X_init, **{f"Init {key.upper()}": implied[key] for key in VIEW_KEYS},
                                SEARCHED_START if registration.search else "Refine": X_learned}
-            registration.starts = {name: _pair_objective(renderer, view_poses(X, rig), case) for name, X in candidates.items()}
+            registration.starts = {name: pair_objective(renderer, view_poses(X, rig), case.views)
+                                   for name, X in candidates.items()}
             registration.chosen_start = min(registration.starts, key=registration.starts.get)
             registration.patient_pose = candidates[registration.chosen_start]
             finals = view_poses(registration.patient_pose, rig)
@@ -367,7 +363,7 @@ def register_case(
             selection = next((r.vessel_selection for r in registration.tto_runs.values() if r.vessel_selection), None)
             registration.vessel_selection = selection
             judge = renderer if selection is None else make_renderer(selection.volume, renderer.engine, device)
-            registration.tto_objective = {name: _pair_objective(judge, run.poses, case)
+            registration.tto_objective = {name: pair_objective(judge, run.poses, case.views)
                                           for name, run in registration.tto_runs.items() if run.stopped_at is None}
             registration.chosen_start = chosen_result(registration.tto_objective)
             tto_result = registration.tto_runs[registration.chosen_start]
