@@ -112,13 +112,17 @@ def run(args: argparse.Namespace) -> int:
                         make(source, seed, arteries=arteries), models, settings, long=False)))
                     print(f"real head {tag} done; elapsed {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
     summary = summarise(cases, args.iterations)
+    case_devices = sorted({str(c.get("device", device)) for c in cases + dense + real})
+    ran_on = "" if case_devices == [str(device)] else f"; the cases (resumed from {out / 'cases'}) ran on {', '.join(case_devices)}"
+    long_note = f"long native TTO on {min(n_long, len(cases))} subjects" if args.long_iterations > 0 else "no long native TTO"
     header = (
         f"# GeoPose benchmark on {len(cases)} held-out phantom subjects\n\n"
         f"Seeds {seeds[0]}..{seeds[-1]} (disjoint from the training seeds), {args.spacing_mm:g} mm phantoms, "
         f"models `{models_dir.name}` ({backend}), device `{device}` ({platform.machine()}, "
-        f"{os.cpu_count()} CPUs), geopose {__version__}; "
-        f"long native TTO on {min(n_long, len(cases))} subjects.\n\n"
-        f"Reproduce: `geopose bench --subjects {args.subjects} --long-subjects {n_long} --spacing-mm {args.spacing_mm:g} "
+        f"{os.cpu_count()} CPUs){ran_on}, geopose {__version__}; "
+        f"{long_note}.\n\n"
+        f"Reproduce: `geopose bench --subjects {args.subjects} --seed-start {args.seed_start} --long-subjects {n_long} "
+        f"--long-iterations {args.long_iterations} --spacing-mm {args.spacing_mm:g} "
         f"--out {out}{' --headsq ' + args.headsq if args.headsq else ''}{' --ge-head ' + args.ge_head if args.ge_head else ''}"
         f"{' --real-seeds ' + str(args.real_seeds) if real else ''}"
         f"{' --real-arteries' if args.real_arteries else ''}"
