@@ -312,6 +312,15 @@ def test_override_accepts_differing_ids_and_records_it(case):
     json.dumps(entry)
 
 
+def test_shipped_case_belongs_together():
+    """The phantom case the Slicer self-test and the README ship passes the gate a user's case goes through
+    (its two runs carried different StudyInstanceUIDs until session 30: `geopose register` refused it)."""
+    shipped = Path(__file__).resolve().parents[2] / "Resources" / "Testing" / "phantom_seed0_2mm"
+    runs = {key: read_dsa(shipped / f"dsa_{key}.dcm") for key in ("pa", "lat")}
+    entry = check_inputs_belong_together(load_cta(shipped / "cta.nii.gz"), runs)
+    assert entry["mismatches_accepted"] == []
+
+
 # ----------------------------------------------------------------- 6., 7. truth.json, remedies, sform/qform
 
 
