@@ -649,5 +649,6 @@ def test_the_self_test_passes_on_the_shipped_case(newest, monkeypatch, tmp_path,
     monkeypatch.setattr(tempfile, "tempdir", str(temp))
     module.GeoPoseTest().runTest()
     assert [(o.backend) for o in registered] == (["torch"] * 2 if with_torch else []) + ["onnxruntime"] * 2
-    assert list(temp.iterdir()) == []
+    # torch keeps its own compile cache (torchinductor_<user>) in the temporary folder in any session that uses it
+    assert [p for p in temp.iterdir() if not p.name.startswith("torchinductor_")] == []
     assert slicer.mrmlScene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode") == 0
