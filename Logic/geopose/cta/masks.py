@@ -42,6 +42,7 @@ BONE_MARGIN_MM = 2.5
 #: Frangi measure threshold; tuned on validation phantoms 6000-6003: carotid centreline recall 71-73 -> 82-98 %).
 CANAL_SIGMA_MM = 1.5
 CANAL_OBJECTNESS = 0.03
+CANAL_GRID_MM = 2.0
 #: Voxels within this (mm) of air inside the body (the walls of the nasal cavity, paranasal sinuses, pharynx) are not vessel.
 AIR_MARGIN_MM = 3.0
 #: The vessel mask is computed on a grid no finer than this (mm; HU block-averaged, the cranium
@@ -216,13 +217,19 @@ def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, floa
 def _dark_tubes(a: np.ndarray, spacing_mm) -> np.ndarray:
     """Voxels ([k, j, i] bool) on a lumen darker than the bone around it: Frangi's tube measure
     (``sitk.ObjectnessMeasure``, dark tubes) of the HU smoothed at :data:`CANAL_SIGMA_MM`, above
-    :data:`CANAL_OBJECTNESS`. Bone clipped at 1200 HU so cortex of any density makes the same wall."""
+    :data:`CANAL_OBJECTNESS`. Bone clipped at 1200 HU so cortex of any density makes the same wall. Computed
+    on a grid of about :data:`CANAL_GRID_MM` (a canal's lumen is 4-5 mm wide) and mapped back by nearest
+    neighbour: at 1 mm the full grid took 3 s of a 7 s mask on 2 cores."""
     image = sitk.GetImageFromArray(np.clip(a, -200.0, 1200.0).astype(np.float32))
     image.SetSpacing(tuple(float(s) for s in spacing_mm))
-    smooth = sitk.SmoothingRecursiveGaussian(image, CANAL_SIGMA_MM)
+    factors = [max(1, round(CANAL_GRID_MM / s)) for s in spacing_mm]
+    coarse = sitk.BinShrink(image, factors) if max(factors) > 1 else image
+    smooth = sitk.SmoothingRecursiveGaussian(coarse, CANAL_SIGMA_MM)
     tubes = sitk.ObjectnessMeasure(smooth, alpha=0.5, beta=0.5, gamma=100.0, scaleObjectnessMeasure=False,
-                                   objectDimension=1, brightObject=False)
-    return sitk.GetArrayFromImage(tubes) > CANAL_OBJECTNESS
+                                   objectDimension=1, brightObject=False) > CANAL_OBJECTNESS
+    if coarse is not image:
+        tubes = sitk.Resample(tubes, image, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
+    return sitk.GetArrayFromImage(tubes).astype(bool)
 
 
 def _joined(tree: np.ndarray, canal: np.ndarray) -> np.ndarray:
