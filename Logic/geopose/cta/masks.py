@@ -238,4 +238,6 @@ def _joined(tree: np.ndarray, canal: np.ndarray) -> np.ndarray:
         return tree
     cc = sitk.GetArrayFromImage(sitk.ConnectedComponent(sitk.GetImageFromArray((tree | canal).astype(np.uint8)), True))
     touching = np.unique(cc[tree])
-    return np.isin(cc, touching[touching > 0])
+    keep = np.zeros(int(cc.max()) + 1, dtype=bool)
+    keep[touching[touching > 0]] = True
+    return keep[cc]
