@@ -198,20 +198,19 @@ def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, floa
     in_plane_mm2 = float(np.prod([s for n, s in enumerate(spacing_mm) if n != 2 - axis]))
     bone = a > DENSE_BONE_HU
     bone |= _small_holes_slicewise(bone, axis, MARROW_MAX_MM2 / in_plane_mm2)
-    near_bone = sitk.GetArrayFromImage(sitk.BinaryDilate(sitk.GetImageFromArray(bone.astype(np.uint8)),
-                                                         _radius_vox(BONE_MARGIN_MM, spacing_mm), sitk.sitkBall))
+    near_bone = _dilate_mm(bone, BONE_MARGIN_MM, spacing_mm)
     lo, hi = VESSEL_HU_RANGE
     lumen_hu = (a >= lo) & (a <= hi) & body & ~near_air
-    candidate = lumen_hu & (near_bone == 0)
+    candidate = lumen_hu & ~near_bone
     min_voxels = max(1, int(np.ceil(MIN_VESSEL_COMPONENT_MM3 / float(np.prod(spacing_mm)))))
     tree = sitk.GetArrayFromImage(sitk.RelabelComponent(
         sitk.ConnectedComponent(sitk.GetImageFromArray(candidate.astype(np.uint8)), True), minimumObjectSize=min_voxels)) > 0
-    joined = _joined(tree, lumen_hu & (near_bone > 0) & _dark_tubes(a, spacing_mm))
+    labels = _joined_components(tree, lumen_hu & near_bone & _dark_tubes(a, spacing_mm))
     shapes = sitk.LabelShapeStatisticsImageFilter()
-    shapes.Execute(sitk.ConnectedComponent(sitk.GetImageFromArray(joined.astype(np.uint8)), True))
+    shapes.Execute(sitk.GetImageFromArray(labels))
     dim = 2 - axis  # the superior axis as an (i, j, k) index
     span_vox = max((shapes.GetBoundingBox(label)[3 + dim] for label in shapes.GetLabels()), default=0)
-    return joined.astype(np.uint8), float(span_vox * spacing_mm[dim])
+    return (labels > 0).astype(np.uint8), float(span_vox * spacing_mm[dim])
 
 
 def _dark_tubes(a: np.ndarray, spacing_mm) -> np.ndarray:
@@ -232,12 +231,11 @@ def _dark_tubes(a: np.ndarray, spacing_mm) -> np.ndarray:
     return sitk.GetArrayFromImage(tubes).astype(bool)
 
 
-def _joined(tree: np.ndarray, canal: np.ndarray) -> np.ndarray:
-    """``tree`` together with the parts of ``canal`` connected (26-neighbourhood) to it ([k, j, i] bool)."""
-    if not canal.any():
-        return tree
+def _joined_components(tree: np.ndarray, canal: np.ndarray) -> np.ndarray:
+    """The 26-connected components (uint32 labels, [k, j, i]; 0 elsewhere) of ``tree`` together with the parts
+    of ``canal`` connected to it (both bool)."""
     cc = sitk.GetArrayFromImage(sitk.ConnectedComponent(sitk.GetImageFromArray((tree | canal).astype(np.uint8)), True))
-    touching = np.unique(cc[tree])
     keep = np.zeros(int(cc.max()) + 1, dtype=bool)
-    keep[touching[touching > 0]] = True
-    return keep[cc]
+    keep[np.unique(cc[tree])] = True
+    keep[0] = False
+    return np.where(keep[cc], cc, 0).astype(np.uint32)

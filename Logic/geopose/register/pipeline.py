@@ -238,6 +238,20 @@ def _consistency_doubts(key: str, init: InitEstimate, label: int, registration: 
     return tuple(doubts)
 
 
+def _tto_distrusted(learned: Mapping[str, np.ndarray], finals: Mapping[str, np.ndarray], objective: float | None, *,
+                    computed_vessels: bool) -> str | None:
+    """Why the TTO's result ``finals`` gives way to the networks' estimate ``learned`` (poses per view), worded for
+    the record and the flag; None when it is kept. ``objective``: the result's (both views summed)."""
+    if computed_vessels:
+        moved = [stage_agreement(learned[key], finals[key]) for key in VIEW_KEYS]
+        rot, mm = max(m[0] for m in moved), max(m[1] for m in moved)
+        if rot > AGREEMENT_DEG or mm > AGREEMENT_MM:
+            return APPROXIMATE_VESSELS_NOTE.format(rot=rot, mm=mm)
+    if objective is not None and objective > WEAK_OBJECTIVE:
+        return WEAK_EVIDENCE_NOTE.format(objective=objective, limit=WEAK_OBJECTIVE)
+    return None
+
+
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether two poses ``(4, 4)`` are one start: rotations within 1e-4, positions within 0.01 mm."""
     return bool(np.allclose(a[:3, :3], b[:3, :3], atol=1e-4) and np.allclose(a[:3, 3], b[:3, 3], atol=0.01))
@@ -388,18 +402,10 @@ def register_case(
             tto_result = test_time_optimise(tto_renderer, tto_views(case.views, finals), schedule, objective=PAPER_OBJECTIVE,
                                             biplanar=options.biplanar, monitor=monitor)
             finals = dict(tto_result.poses)
-        if joint and registration.vessel_evidence and segmentation is None and tto_result is not None:
-            moved = [stage_agreement(learned[key], finals[key]) for key in VIEW_KEYS]
-            rot, mm = max(m[0] for m in moved), max(m[1] for m in moved)
-            if rot > AGREEMENT_DEG or mm > AGREEMENT_MM:
-                registration.kept_learned = APPROXIMATE_VESSELS_NOTE.format(rot=rot, mm=mm)
-                notes.append(registration.kept_learned)
-                finals, registration.patient_pose = dict(learned), X_learned
-                registration.chosen_start = SEARCHED_START if registration.search else "Refine"
-        if joint and registration.vessel_evidence and registration.tto_objective and not registration.kept_learned:
-            best = registration.tto_objective[registration.chosen_start]
-            if best > WEAK_OBJECTIVE:
-                registration.kept_learned = WEAK_EVIDENCE_NOTE.format(objective=best, limit=WEAK_OBJECTIVE)
+        if joint and registration.vessel_evidence and tto_result is not None:
+            registration.kept_learned = _tto_distrusted(learned, finals, registration.tto_objective.get(registration.chosen_start),
+                                                        computed_vessels=segmentation is None) or ""
+            if registration.kept_learned:
                 notes.append(registration.kept_learned)
                 finals, registration.patient_pose = dict(learned), X_learned
                 registration.chosen_start = SEARCHED_START if registration.search else "Refine"
