@@ -18,17 +18,18 @@ from geopose.register import render_model_view
 from geopose.register.biplane import (
     Observability,
     axis_disagreement_mm,
-    combined_starts,
     common_axis,
     fuse_patient_poses,
     moved_by,
     part_way,
     patient_pose,
     turned_about,
-    valley_turn,
     view_poses,
 )
-from geopose.register.refine import greedy_refine_biplane, refine_from_starts
+from geopose.register.axis_search import valley_turn
+from geopose.register.init import InitStage
+from geopose.register.refine import refine_from_starts
+from geopose.register.starts import refine_starts
 from geopose.register.search import similarity_search
 
 SID_MM, SOD_MM = 1200.0, 800.0
@@ -206,8 +207,8 @@ def test_biplane_greedy_fuses_both_views_retries_half_a_rejected_move_and_stops(
     # Proposal 1 overshoots (rejected), its half-size retry is accepted; proposal 2 answers the truth
     # (accepted); proposal 3 heads far away: it and its retry are rejected and the loop stops.
     oracle = QueuedRefine(towards(start, overshoot) + towards(halfway, X_true) + towards(X_true, away))
-    traces = greedy_refine_biplane(renderer, targets, start, RIG, {"pa": C.VIEW_PA, "lat": C.VIEW_LAT_PLUS}, oracle,
-                                   RENDER_PX, max_proposals=5)
+    traces = refine_from_starts(renderer, targets, {"start": start}, RIG, {"pa": C.VIEW_PA, "lat": C.VIEW_LAT_PLUS}, oracle,
+                                RENDER_PX, max_proposals=5).traces
     for key in RIG:
         assert [p.accepted for p in traces[key].proposals] == [False, True, True, False, False]
         np.testing.assert_allclose(traces[key].proposals[1].pose, halfway @ RIG[key], atol=1e-6)
@@ -221,10 +222,10 @@ def test_biplane_greedy_fuses_both_views_retries_half_a_rejected_move_and_stops(
     assert oracle.answered == 6
 
 
-def test_combined_starts_pair_every_rotation_with_every_isocentre():
+def test_refine_starts_pair_every_rotation_with_every_isocentre():
     pa, lat = _patient((6.0, -2.0, 1.0), (12.0, -3.0, 40.0)), _patient((-1.0, 4.0, -2.0), (-5.0, 30.0, 2.0))
     fused = fuse_patient_poses({"pa": pa, "lat": lat}, RIG)
-    starts = combined_starts({"pa": pa, "lat": lat}, fused)
+    starts = refine_starts(InitStage({}, {"pa": pa, "lat": lat}, fused, 0.0))
     assert len(starts) == 9
     np.testing.assert_allclose(next(iter(starts.values())), fused, atol=1e-12)  # the fused pose comes first
     sources = {"fused": fused, "PA": pa, "LAT": lat}
@@ -299,7 +300,7 @@ def test_stage_agreement_measures_the_patient_not_the_source():
     """A 6.4 deg turn of the patient about the CTA centre moves the PA source by about 73 mm but
     the CTA centre in the camera frame by nothing: the quality rule's agreement sees 6.4 deg / 0 mm;
     a shift of the patient reads as its length."""
-    from geopose.register.pipeline import stage_agreement
+    from geopose.register.trust import stage_agreement
 
     learned = RIG["pa"]
     turn = np.eye(4)

@@ -26,8 +26,8 @@ from geopose.register.biplane import nominal_poses
 from geopose.register.case import prepare_case
 from geopose.register.evaluate import evaluate_pose
 from geopose.register.objective import Objective
-from geopose.register.pipeline import tto_views
 from geopose.register.tto import test_time_optimise as run_tto
+from geopose.register.tto import tto_views
 from geopose.render.renderer import TorchRenderer
 
 SEED = 0

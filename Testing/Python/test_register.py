@@ -44,9 +44,9 @@ from geopose.register import (
 )
 from geopose.register.biplane import common_axis, nominal_poses, turned_about
 from geopose.register.evaluate import evaluate_pose, load_truth, truth_metrics
-from geopose.register.objective import (PAPER_OBJECTIVE, Objective, clip_like_target, fit_like_target, objective_value,
-                                        silhouette_features)
-from geopose.register.pipeline import tto_views
+from geopose.register.objective import (PAPER_OBJECTIVE, SILHOUETTE_MODELS, Objective, clip_like_target, combine,
+                                        fit_like_target, objective_value, silhouette_features, view_terms)
+from geopose.register.tto import tto_views
 from geopose.register.record import SCHEMA_VERSION, build_record
 from geopose.register.report import write_overlays
 from geopose.render.renderer import NumpyRenderer, TorchRenderer, make_renderer
@@ -379,6 +379,34 @@ def test_the_objective_is_the_same_in_numpy_and_in_the_tto(phantom_case):
         assert trace["loss"] == pytest.approx(total, abs=4e-3)
 
 
+def test_view_terms_agree_on_numpy_and_torch_arrays_for_every_silhouette_model():
+    """The one objective (objective.view_terms) on the same images gives the same terms in numpy and torch:
+    only the similarity kernels are written twice. The torch loss also carries a gradient."""
+    import torch
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[:48, :40]
+    total = np.exp(-((yy - 24) ** 2 + (xx - 20) ** 2) / 200.0) * 5 + rng.normal(0, 0.05, (48, 40))
+    cranium = total * 4 - 2
+    vessels = np.maximum(0, np.sin(xx / 3.0)) * (total > 1)
+    target = np.clip(total + rng.normal(0, 0.3, total.shape), 0.5, 4)
+    mask = total > 0.8
+    vessel_target = vessels + rng.normal(0, 0.1, vessels.shape)
+    for model in SILHOUETTE_MODELS:
+        objective = Objective(silhouette=model)
+        ours = view_terms(total, cranium, vessels, target, mask, vessel_target, objective)
+        t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32))  # noqa: E731
+        image = t(total).requires_grad_(True)
+        theirs = view_terms(image, t(cranium), t(vessels), t(target), t(mask), t(vessel_target), objective,
+                            vessel_term=True, xp=torch)
+        for a, b in zip(ours, theirs):
+            assert float(b.detach()) == pytest.approx(float(a), abs=2e-4), model
+        theirs[0].sum().backward()
+        assert float(image.grad.abs().sum()) > 0, model
+    no_vessels = view_terms(total, cranium, np.zeros_like(vessels), target, mask, vessel_target, Objective())
+    assert no_vessels[3] is None and no_vessels[0] == pytest.approx(combine(Objective(), *no_vessels[1:3], None))
+
+
 def test_the_fitted_silhouette_is_the_least_squares_combination_of_its_basis():
     """A target made of the basis (u, exp(2 min(u, 1)), 1; u the DRR over its 99.5th percentile in
     the mask) with non-negative weights is recovered exactly, zero outside the mask, in numpy and in
@@ -427,7 +455,8 @@ class SideSwappedInit(OracleInit):
 
 def test_the_dicom_angles_result_is_kept_on_a_tie():
     """The lowest final objective wins; within OBJECTIVE_TIE of it, the DICOM angles' result does."""
-    from geopose.register.pipeline import DICOM_START, OBJECTIVE_TIE, chosen_result
+    from geopose.register.starts import DICOM_START
+    from geopose.register.tournament import OBJECTIVE_TIE, chosen_result
 
     assert chosen_result({DICOM_START: -0.46458, "Init PA": -0.46460}) == DICOM_START
     assert chosen_result({DICOM_START: -0.40, "Init": -0.40 - 2 * OBJECTIVE_TIE}) == "Init"
@@ -595,7 +624,7 @@ def test_weak_image_evidence_keeps_the_networks_estimate(tmp_path):
     0.97 / 0.79 mm. Above ``WEAK_OBJECTIVE`` the networks' estimate is kept, and the record says why."""
     pytest.importorskip("torch")
     from geopose.register.cli import register_files
-    from geopose.register.pipeline import WEAK_OBJECTIVE
+    from geopose.register.trust import WEAK_OBJECTIVE
 
     case = Path(__file__).resolve().parents[2] / "Resources" / "Testing" / "phantom_seed0_2mm"
     labels = load_cta(case / "labels.nii.gz", check_hu=False)

@@ -18,7 +18,7 @@ from pathlib import Path
 from .. import __version__
 from ..errors import InputError
 from ..register.cli import options_from_args, registration_option_args
-from ..register.pipeline import resolve_engine
+from ..register.engine import resolve_engine
 from ..resources import default_models_dir
 from .cases import ARTERIES_SUFFIX, ge_head_case, headsq_case, phantom_case, training_seeds
 from .report import convergence_figure, markdown, summarise

@@ -36,9 +36,11 @@ from ..options import RegistrationOptions
 from ..register.biplane import nominal_poses, patient_pose
 from ..register.case import VIEW_KEYS, silhouette_dice
 from ..register.evaluate import carotid_mpcd, evaluate_pose
-from ..register.pipeline import DICOM_START, register_case, torch_renderer_for, tto_views
+from ..register.engine import torch_renderer_for
+from ..register.pipeline import register_case
+from ..register.starts import DICOM_START
 from ..register.results import CaseRegistration
-from ..register.tto import TTOSchedule, test_time_optimise
+from ..register.tto import TTOSchedule, test_time_optimise, tto_views
 from ..render.renderer import Renderer
 from .cases import BenchCase
 

@@ -1,4 +1,5 @@
-"""The NCC family in numpy (float64): scores of the refinement gate, the final mNCC and the benchmark.
+"""The NCC family and the Dice loss in numpy (float64): scores of the refinement gate, the final mNCC,
+the objective's numpy kernel and the benchmark.
 
 Same definitions: each image is brought to zero mean and unit (max - min) range,
 then z-scored globally (:func:`ncc`) or per ``patch_px`` patch (:func:`local_ncc`,
@@ -12,7 +13,7 @@ import numpy as np
 
 from ..contract import MNCC_GLOBAL_WEIGHT, MNCC_PATCH_PX, NCC_EPS
 
-__all__ = ["ncc", "local_ncc", "mncc"]
+__all__ = ["ncc", "local_ncc", "mncc", "generalized_dice_loss"]
 
 
 def _check_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -60,3 +61,13 @@ def local_ncc(a: np.ndarray, b: np.ndarray, patch_px: int = MNCC_PATCH_PX, eps: 
 def mncc(a: np.ndarray, b: np.ndarray, patch_px: int = MNCC_PATCH_PX, eps: float = NCC_EPS) -> float:
     """Multiscale NCC: ``MNCC_GLOBAL_WEIGHT`` x global NCC + the rest x mean patch NCC."""
     return MNCC_GLOBAL_WEIGHT * ncc(a, b, eps) + (1.0 - MNCC_GLOBAL_WEIGHT) * local_ncc(a, b, patch_px, eps)
+
+
+def generalized_dice_loss(pred: np.ndarray, target: np.ndarray) -> float:
+    """Two-class generalised Dice loss of a soft mask ``pred`` in [0, 1] and a binary ``target``
+    (the definition of ``losses.generalized_dice_loss``, foreground and background)."""
+    p = np.stack((pred, 1.0 - pred)).reshape(2, -1).astype(np.float64)
+    g = np.stack((target, 1.0 - target)).reshape(2, -1).astype(np.float64)
+    w = 1.0 / np.maximum(g.sum(1), 1.0) ** 2
+    total = (w * (p + g).sum(1)).sum()
+    return 1.0 - (2.0 * (w * (p * g).sum(1)).sum() / total if total > 0 else 1.0)

@@ -1,6 +1,8 @@
-"""GeoPose registration: the one pipeline (``pipeline.register_case``) and its stages
-(case preparation, calibration, calibrated Init, gated refinement, similarity
-search, test-time optimisation), result dataclasses and record, pictures and the ``register`` command."""
+"""GeoPose registration: the one pipeline (``pipeline.register_case``) and its stages, each in its
+own module (engine and case, calibration, Init, greedy Refine, similarity search, candidate starts,
+the TTO and its tournament, the trust rules, the mirror test, scoring), the published
+independent-views pipeline (``published.py``), result dataclasses and record, pictures and the
+``register`` command."""
 
 from ..lazy import lazy_exports
 
@@ -9,15 +11,18 @@ __all__, __getattr__, __dir__ = lazy_exports(
     {
         "calibration": ("calibrate", "calibrated_init", "render_model_view"),
         "case": ("VIEW_KEYS", "PreparedCase", "prepare_case"),
-        "pipeline": ("NO_TORCH_TTO_NOTE", "register_case", "resolve_engine", "score_view", "tto_views"),
+        "engine": ("NO_TORCH_TTO_NOTE", "resolve_engine", "torch_available"),
+        "pipeline": ("register_case",),
         "progress": ("ConsoleProgress", "Monitor", "RegistrationCancelled"),
         "quality": ("Quality", "assess"),
-        "refine": ("greedy_refine", "greedy_refine_biplane", "refine_from_starts"),
+        "refine": ("greedy_refine", "refine_from_starts"),
+        "scoring": ("score_view",),
         "search": ("similarity_search",),
         "results": ("Calibration", "CaseRegistration", "InitEstimate", "Proposal", "RefineTrace", "SearchTrace",
                     "ViewOutcome"),
-        "tto": ("PAPER_SCHEDULE", "TTOResult", "TTOSchedule", "TTOView", "biplanar_penalty", "test_time_optimise"),
+        "tto": ("PAPER_SCHEDULE", "TTOResult", "TTOSchedule", "TTOView", "biplanar_penalty", "test_time_optimise",
+                "tto_views"),
         "objective": ("Objective", "PAPER_OBJECTIVE", "objective_value"),
-        "biplane": ("Observability", "combined_starts", "fuse_patient_poses", "nominal_poses", "patient_pose", "view_poses"),
+        "biplane": ("Observability", "fuse_patient_poses", "nominal_poses", "patient_pose", "view_poses"),
     },
 )

@@ -18,13 +18,11 @@ from typing import Mapping
 import numpy as np
 
 from ..dsa import DSARun
-from ..geometry.detector import AP_REORIENT, Detector
-from ..geometry.poses import (axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles,
-                              project_points)
+from ..geometry.detector import AP_REORIENT
+from ..geometry.poses import axis_angle_to_matrix, invert, matrix_to_axis_angle, pose_from_carm_angles
 
-__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "combined_starts",
-           "central_ray",
-           "common_axis", "turned_about", "moved_by", "part_way", "valley_turn", "axis_disagreement_mm"]
+__all__ = ["Observability", "nominal_poses", "patient_pose", "view_poses", "fuse_patient_poses", "central_ray",
+           "common_axis", "turned_about", "moved_by", "part_way", "axis_disagreement_mm"]
 
 
 @dataclass(frozen=True)
@@ -92,24 +90,6 @@ def fuse_patient_poses(
     return out
 
 
-def combined_starts(estimates: Mapping[str, np.ndarray], fused: np.ndarray) -> dict[str, np.ndarray]:
-    """Patient poses ``(4, 4)`` that combine the rotation of one estimate with the isocentre of
-    another, the ``fused`` pose (:func:`fuse_patient_poses` of ``estimates``) among the sources:
-    ``{"rotation A, isocentre B": X}`` for A, B in ``fused`` and the views' keys upper-cased (9 for
-    two views; the first is the fused pose). One view's Init can be right in rotation and wrong in
-    position (or the other way round); greedy Refine from each and the best by the similarity
-    (:func:`.refine.refine_from_starts`) recovers from either."""
-    sources = {"fused": np.asarray(fused, dtype=np.float64),
-               **{key.upper(): np.asarray(X, dtype=np.float64) for key, X in estimates.items()}}
-    starts = {}
-    for rot_name, R in sources.items():
-        for iso_name, T in sources.items():
-            X = np.array(T)
-            X[:3, :3] = R[:3, :3]
-            starts[f"rotation {rot_name}, isocentre {iso_name}"] = X
-    return starts
-
-
 def common_axis(poses: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray]) -> np.ndarray | None:
     """Unit vector (CTA frame) normal to the central rays of the first two views ``{view: X_v}``:
     the axis both image planes contain (superior-inferior for PA + lateral); None for one view
@@ -143,34 +123,6 @@ def part_way(X: np.ndarray, Y: np.ndarray, fraction: float) -> np.ndarray:
     X, Y = np.asarray(X, dtype=np.float64), np.asarray(Y, dtype=np.float64)
     turn = matrix_to_axis_angle(Y[:3, :3] @ X[:3, :3].T)
     return moved_by(X, fraction * turn, fraction * (Y[:3, 3] - X[:3, 3]))
-
-
-def valley_turn(
-    X: np.ndarray, nominal: Mapping[str, np.ndarray], detectors: Mapping[str, Detector], points_mm: np.ndarray
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The patient motion, per radian of turn about the common axis (:func:`common_axis`), that moves
-    the projections of ``points_mm`` ``(N, 3)`` (CTA frame) in the views' ``detectors`` least:
-    ``(rotation (3,) rad/rad, shift (3,) mm/rad)`` for :func:`moved_by`, the rotation's part along
-    the axis 1. The turn alone shifts the views' images, which the other five parameters
-    partly undo (least squares on the pixel motion, linearised at ``X``); the objective is flat
-    along this direction rather than along the bare turn. None without a common axis or points."""
-    axis = common_axis({k: X for k in nominal}, nominal)
-    points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
-    if axis is None or not len(points):
-        return None
-    others = np.linalg.svd(axis[None])[2][1:]  # two unit vectors normal to the axis
-    basis = np.zeros((6, 6))
-    basis[:3, 0], basis[:3, 1:3], basis[3:, 3:] = axis, others.T, np.eye(3)
-
-    def pixels(d: np.ndarray) -> np.ndarray:
-        Y = moved_by(X, d[:3], d[3:])
-        return np.concatenate([project_points(Y @ nominal[k], detectors[k], points)[0].ravel() for k in nominal])
-
-    eps = 1e-5
-    J = np.stack([(pixels(eps * b) - pixels(-eps * b)) / (2 * eps) for b in basis.T], axis=1)
-    rest, *_ = np.linalg.lstsq(J[:, 1:], -J[:, 0], rcond=None)
-    d = basis @ np.r_[1.0, rest]
-    return d[:3], d[3:]
 
 
 def axis_disagreement_mm(estimates: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray]) -> float:

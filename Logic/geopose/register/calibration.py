@@ -17,6 +17,7 @@ from ..images import normalize_minmax
 from ..nets.decoding import select_view
 from ..nets.predictors import InitPredictor
 from ..render.renderer import Renderer
+from .progress import Monitor
 from .results import Calibration, InitEstimate
 
 __all__ = ["render_model_view", "calibrate", "calibrated_init"]
@@ -29,8 +30,9 @@ def render_model_view(renderer: Renderer, pose: np.ndarray, render_px: int) -> n
     return normalize_minmax(image[None])
 
 
-def calibrate(renderer: Renderer, init: InitPredictor, render_px: int) -> Calibration:
+def calibrate(renderer: Renderer, init: InitPredictor, render_px: int, monitor: Monitor | None = None) -> Calibration:
     """Render the native CTA at the PA isopose and read Init's canonical pose for it."""
+    (monitor or Monitor()).step("calibration", 0.0, "rendering the PA calibration DRR")
     t_cal = isopose(C.VIEW_PA)
     image = render_model_view(renderer, t_cal, render_px)
     predicted = init.predict(image, is_lateral=False)[0][0]

@@ -26,7 +26,7 @@ TTO_PX_CUDA = 256
 TTO_PX_CPU = 128
 
 
-@dataclass
+@dataclass(frozen=True)
 class PreparedCase:
     """The CTA's :class:`RenderVolume`, where each mask came from (``labels_source``), and each
     view's preprocessed DSA (``views``, keyed ``pa`` / ``lat``)."""
@@ -36,9 +36,23 @@ class PreparedCase:
     labels_source: dict[str, str]
     views: dict[str, PreparedDSA]
 
+    @property
+    def vessel_evidence(self) -> bool:
+        """Whether the CTA's vessel mask (given, or computed on first use) holds any vessel."""
+        vessels = self.volume.mask("vessels")
+        return vessels is not None and bool(vessels.any())
+
     def model_target(self, key: str) -> np.ndarray:
         """View ``key``'s model-geometry MAP ``(1, 1, 256, 256)`` float32 (the networks' image)."""
         return self.views[key].model_image[None, None].astype(np.float32)
+
+    def model_targets(self) -> dict[str, np.ndarray]:
+        """Every view's :meth:`model_target`."""
+        return {key: self.model_target(key) for key in VIEW_KEYS}
+
+    def view_labels(self) -> dict[str, int]:
+        """Every view's label by its acquisition angle (``contract.VIEW_*``)."""
+        return {key: self.views[key].view_label for key in VIEW_KEYS}
 
 
 def check_view_keys(dsa: Mapping[str, object]) -> None:

@@ -20,7 +20,8 @@ from ..dsa import geometry_override_args, geometry_overrides_from_args, read_dsa
 from ..options import BACKENDS, DEVICES, RegistrationOptions
 from ..outputs import OutputFolder
 from .evaluate import truth_for, truth_metrics
-from .pipeline import register_case, resolve_engine
+from .engine import resolve_engine
+from .pipeline import register_case
 from .progress import CancelCheck, ConsoleProgress, ProgressCallback
 from .record import build_record
 from .report import OVERLAY_NAMES, write_overlays

@@ -27,6 +27,7 @@ from ..render.volume import RenderVolume
 from ..volume import Volume
 from .biplane import view_poses
 from .objective import pair_objective
+from .progress import Monitor
 
 __all__ = ["MIRROR_TTO_ITERATIONS", "MIRROR_LOSS_MARGIN", "MirrorTest", "mirrored_volume", "mirror_test"]
 
@@ -76,11 +77,12 @@ def mirrored_volume(volume: RenderVolume) -> RenderVolume:
 
 
 def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], patient_pose: np.ndarray,
-                rig: Mapping[str, np.ndarray], device: str = "cpu") -> MirrorTest:
+                rig: Mapping[str, np.ndarray], device: str = "cpu", monitor: Monitor | None = None) -> MirrorTest:
     """The result at ``patient_pose`` ``(4, 4)`` (camera poses ``X @ A_v``, ``rig``) against the mirrored CTA
     optimised from it; ``renderer`` renders the CTA as registered, ``views`` are the prepared runs."""
     from .tto import TTOSchedule, test_time_optimise, tto_views  # PyTorch, only when the test runs
 
+    (monitor or Monitor()).step("mirror", 0.0, "weighing the result against the CTA mirrored left-right")
     mirrored = mirrored_volume(renderer.volume)
     start = view_poses(patient_pose, rig)
     result = test_time_optimise(TorchRenderer(mirrored, device), tto_views(views, start), TTOSchedule(MIRROR_TTO_ITERATIONS),

@@ -1,4 +1,6 @@
-"""The registration objective, as a score (numpy; no gradients).
+"""The registration objective, written once for both engines: scores in numpy, and the same, differentiable,
+in torch for the test-time optimisation (:func:`view_terms`; only the similarity kernels are written twice,
+``metrics.similarity`` and ``metrics.losses``).
 
 Per view, in the acquisition geometry: the GeoReg silhouette terms ``w * (-mNCC(target,
 image)) + (1 - w) * GeneralizedDice(sigmoid(cranium channel), DSA mask)``, ``image`` the DRR
@@ -8,9 +10,9 @@ vessel term ``-NCC(MAP vessels, DRR vessel channel)`` weighted ``vessel_weight``
 like exp(attenuation / 2) through the whole head (face and neck included), so a linear DRR
 clipped like the MAP has its optimum 1-3 deg from the truth on heads without vessels; a model
 of that level fitted to the MAP lies nearer on most (docs/silhouette.md). The opacified vessels
-are sharp and sit where the CTA's vessels project (docs/objective.md). The same
-objective, differentiable, is what the test-time optimisation minimises (``tto.py``);
-scores here decide between candidate starts and grade the final poses, on either engine.
+are sharp and sit where the CTA's vessels project (docs/objective.md). The
+test-time optimisation minimises it (``tto.py``); its scores decide between candidate starts and
+TTO results and grade the final poses, on either engine.
 """
 
 from __future__ import annotations
@@ -23,11 +25,11 @@ import numpy as np
 
 from .. import contract as C
 from ..dsa import PreparedDSA
-from ..metrics.similarity import mncc, ncc
+from ..metrics.similarity import generalized_dice_loss, mncc, ncc
 from ..render.renderer import Renderer
 
 __all__ = ["Objective", "PAPER_OBJECTIVE", "ObjectiveValue", "SILHOUETTE_MODELS", "clip_like_target", "fit_like_target",
-           "silhouette_features", "combine", "objective_value", "pair_objective", "generalized_dice_loss"]
+           "silhouette_features", "combine", "view_terms", "objective_value", "pair_objective"]
 
 #: A numpy array or a torch tensor (the fitted silhouette serves both engines).
 Array = Any
@@ -136,16 +138,6 @@ def fit_like_target(image: Array, target: Array, mask: Array, xp: ModuleType = n
     return (weights[:, None, None] * basis).sum(0) * inside
 
 
-def generalized_dice_loss(pred: np.ndarray, target: np.ndarray) -> float:
-    """Two-class generalised Dice loss of a soft mask ``pred`` in [0, 1] and a binary ``target``
-    (same definition as ``metrics.losses.generalized_dice_loss``)."""
-    p = np.stack((pred, 1.0 - pred)).reshape(2, -1).astype(np.float64)
-    g = np.stack((target, 1.0 - target)).reshape(2, -1).astype(np.float64)
-    w = 1.0 / np.maximum(g.sum(1), 1.0) ** 2
-    total = (w * (p + g).sum(1)).sum()
-    return 1.0 - (2.0 * (w * (p * g).sum(1)).sum() / total if total > 0 else 1.0)
-
-
 def combine(objective: Objective, mncc_value, dice_loss, vessel_ncc):
     """The loss from its terms (numbers or torch tensors alike; ``vessel_ncc`` None: no vessel term)."""
     silhouette = objective.ncc_weight * (-mncc_value) + (1 - objective.ncc_weight) * dice_loss
@@ -154,20 +146,80 @@ def combine(objective: Objective, mncc_value, dice_loss, vessel_ncc):
     return (1 - objective.vessel_weight) * silhouette + objective.vessel_weight * (-vessel_ncc)
 
 
+class _NumpyKernels:
+    """The objective's similarity and Dice kernels on ``(H, W)`` numpy arrays (float64 scores)."""
+
+    @staticmethod
+    def fit_input(total: np.ndarray) -> np.ndarray:
+        return total.astype(np.float64)
+
+    mncc = staticmethod(mncc)
+    ncc = staticmethod(ncc)
+
+    @staticmethod
+    def dice_loss(cranium: np.ndarray, mask: np.ndarray) -> float:
+        return generalized_dice_loss(1.0 / (1.0 + np.exp(-cranium.astype(np.float64))), mask.astype(np.float64))
+
+
+class _TorchKernels:
+    """The same on ``(H, W)`` torch tensors, differentiable (values ``(1,)``)."""
+
+    @staticmethod
+    def fit_input(total):
+        return total
+
+    @staticmethod
+    def mncc(a, b):
+        from ..metrics.losses import mncc_similarity
+
+        return mncc_similarity(a[None, None], b[None, None])
+
+    @staticmethod
+    def ncc(a, b):
+        from ..metrics.losses import ncc_similarity
+
+        return ncc_similarity(a[None, None], b[None, None])
+
+    @staticmethod
+    def dice_loss(cranium, mask):
+        import torch
+
+        from ..metrics.losses import generalized_dice_loss as dice
+
+        return dice(torch.sigmoid(cranium[None, None]), mask[None, None])
+
+
+def view_terms(total: Array, cranium: Array, vessels: Array, target: Array, mask: Array, vessel_target: Array,
+               objective: Objective = Objective(), *, coarse: bool = False, vessel_term: bool | None = None,
+               xp: ModuleType = np) -> tuple:
+    """``(loss, mNCC, Dice loss, vessel NCC or None)`` of one view from its DRR channels ``total``, ``cranium``,
+    ``vessels`` and its targets: the silhouette ``target``, the DSA cranium ``mask`` and the MAP's vessel image
+    ``vessel_target``, all ``(H, W)`` in its acquisition geometry. numpy, or torch (differentiable) with
+    ``xp=torch``: the one objective of both engines, only the similarity kernels differ. ``coarse``: the TTO's
+    half-size steps (``objective.coarse_silhouette``); ``vessel_term``: whether the vessel term counts (None:
+    wherever the vessel channel is not empty and ``objective.vessel_weight`` > 0)."""
+    kernels = _NumpyKernels if xp is np else _TorchKernels
+    model = objective.coarse_silhouette if coarse else objective.silhouette
+    if model == "clipped":
+        image = clip_like_target(total, mask, objective.clip_percentiles, xp=xp)
+    elif model == "fitted":
+        image = fit_like_target(kernels.fit_input(total), target, mask, xp=xp)
+    else:
+        image = total
+    if vessel_term is None:
+        vessel_term = objective.vessel_weight > 0 and float(vessels.max()) > 0
+    similarity = kernels.mncc(target, image)
+    dice = kernels.dice_loss(cranium, mask)
+    vessel = kernels.ncc(vessel_target, vessels) if vessel_term else None
+    return combine(objective, similarity, dice, vessel), similarity, dice, vessel
+
+
 def objective_value(renderer: Renderer, pose: np.ndarray, prepared: PreparedDSA, objective: Objective = Objective()) -> ObjectiveValue:
     """The objective of one view at ``pose`` ``(4, 4)`` in its acquisition (TTO) geometry."""
     total, cranium, vessels = renderer.render(pose, prepared.tto_detector, ("total", "cranium", "vessels"))
-    mask = prepared.tto_mask > 0
-    if objective.silhouette == "clipped":
-        image = clip_like_target(total, mask, objective.clip_percentiles)
-    elif objective.silhouette == "fitted":
-        image = fit_like_target(total.astype(np.float64), prepared.tto_image, mask)
-    else:
-        image = total
-    score = mncc(prepared.tto_image, image)
-    dice = generalized_dice_loss(1.0 / (1.0 + np.exp(-cranium.astype(np.float64))), mask.astype(np.float64))
-    vessel = ncc(prepared.tto_vessels, vessels) if objective.vessel_weight > 0 and vessels.max() > 0 else None
-    return ObjectiveValue(float(combine(objective, score, dice, vessel)), score, dice, vessel)
+    loss, *terms = view_terms(total, cranium, vessels, prepared.tto_image, prepared.tto_mask > 0, prepared.tto_vessels,
+                              objective)
+    return ObjectiveValue(float(loss), *terms)
 
 
 def pair_objective(renderer: Renderer, poses: "Mapping[str, np.ndarray]", views: "Mapping[str, PreparedDSA]") -> float:

@@ -29,7 +29,7 @@ SCHEMA = "geopose-result"
 #: stage pose.
 #: 7: each of ``tto_axis_searches`` adds ``rotation_per_rad`` and ``shift_mm_per_rad``: the direction it
 #: searched along (the turn about the common axis with the other parameters' compensation,
-#: ``biplane.valley_turn``).
+#: ``axis_search.valley_turn``).
 #: 6: ``registration.tto_vessel_selection`` (the opacified vessels the TTO's vessel term kept after its
 #: coarse steps: voxels kept of all, where it was read, the runs that kept them; ``register/opacified.py``),
 #: null without one.

@@ -7,7 +7,7 @@ after ``max_proposals`` (one patient pose seen by both arms: a rejected move is 
 once at :data:`.contract.GREEDY_RETRY_FRACTION` of its size). Scores in float64 (a float32
 mNCC of flat patches is off by about 0.005, enough to flip a decision). numpy poses; any
 renderer and Refine predictor. :func:`greedy_refine` refines one view's camera pose (the
-paper); :func:`greedy_refine_biplane` one patient pose seen by both arms.
+paper); :func:`refine_from_starts` one patient pose seen by both arms, from several starts.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from .calibration import render_model_view
 from .progress import Monitor
 from .results import Proposal, RefineTrace
 
-__all__ = ["greedy_refine", "greedy_refine_biplane", "refine_from_starts", "StartsRefined"]
+__all__ = ["greedy_refine", "refine_from_starts", "StartsRefined"]
 
 
 def greedy_refine(
@@ -61,35 +61,10 @@ def greedy_refine(
     return trace
 
 
-def greedy_refine_biplane(
-    renderer: Renderer,
-    targets: Mapping[str, np.ndarray],
-    patient: np.ndarray,
-    rig: Mapping[str, np.ndarray],
-    views: Mapping[str, int],
-    refine: RefinePredictor,
-    render_px: int,
-    max_proposals: int = C.GREEDY_MAX_PROPOSALS,
-    observability: Observability = Observability(),
-    monitor: Monitor | None = None,
-    retry_fraction: float = C.GREEDY_RETRY_FRACTION,
-) -> dict[str, RefineTrace]:
-    """The gated refinement of one patient pose ``X`` seen by both arms (``T_v = X @ rig[v]``).
-
-    Each proposal applies every view's Refine residual to its own camera pose, reads the patient
-    pose each implies and fuses them by what each view observes (:func:`.biplane.fuse_patient_poses`);
-    it is accepted only if the mean mNCC of the views strictly increases; a rejected move is tried
-    once more at ``retry_fraction`` of its size (rotation and isocentre shift scaled alike) before
-    the loop stops. Returns each view's trace (poses ``X @ A_v``, that view's mNCC, the joint
-    accept flags; a retry is a proposal of its own)."""
-    return refine_from_starts(renderer, targets, {"start": patient}, rig, views, refine, render_px, max_proposals,
-                              observability, monitor, retry_fraction).traces
-
-
 @dataclass
 class StartsRefined:
     """Greedy Refine of one patient pose from several starts: the winning start's name, its
-    traces per view (:func:`greedy_refine_biplane`) and every start's final mean mNCC."""
+    traces per view and every start's final mean mNCC."""
 
     start: str
     traces: dict[str, RefineTrace]
@@ -109,8 +84,16 @@ def refine_from_starts(
     monitor: Monitor | None = None,
     retry_fraction: float = C.GREEDY_RETRY_FRACTION,
 ) -> StartsRefined:
-    """:func:`greedy_refine_biplane` from each patient pose in ``starts`` ``{name: (4, 4)}``; the
-    end with the highest mean mNCC of the views wins (the first in ``starts`` on a tie).
+    """The gated refinement of one patient pose ``X`` seen by both arms (``T_v = X @ rig[v]``) from each
+    pose in ``starts`` ``{name: (4, 4)}``; the end with the highest mean mNCC of the views wins (the first
+    in ``starts`` on a tie).
+
+    Each proposal applies every view's Refine residual to its own camera pose, reads the patient
+    pose each implies and fuses them by what each view observes (:func:`.biplane.fuse_patient_poses`);
+    it is accepted only if the mean mNCC of the views strictly increases; a rejected move is tried
+    once more at ``retry_fraction`` of its size (rotation and isocentre shift scaled alike) before
+    that start stops. Each view's trace holds poses ``X @ A_v``, that view's mNCC and the joint
+    accept flags (a retry is a proposal of its own).
 
     The starts run in lockstep: each step runs Refine once per view on every start still
     improving (one batch), so each start makes the same moves as it would alone."""

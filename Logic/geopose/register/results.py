@@ -116,7 +116,7 @@ class ViewOutcome:
         return {"init": self.init_pose, "refine": self.refine.pose, **searched, "final": self.final_pose}
 
 
-@dataclass
+@dataclass(frozen=True)
 class Registration:
     """How the case was registered: ``mode`` ``biplane-rigid`` (one patient pose ``X``, the camera
     poses ``X @ A_v``; ``rig`` holds the ``A_v`` from the DICOM angles) or ``independent views``;
@@ -128,7 +128,10 @@ class Registration:
     compares the finalists; the consistency ``checks`` of the two views; the start of the
     greedy Refine that won (``refine_start``, :func:`.biplane.combined_starts`) with every start's
     final mean mNCC (``refine_starts``); the similarity search after greedy Refine (``search``;
-    None: it did not run)."""
+    None: it did not run); ``vessel_evidence``: whether the CTA's vessel mask held any vessel; ``bound``: without
+    vessel evidence, the bounded move from the DICOM angles (``bound.py``); ``mirror``: the mirrored-CTA test
+    (``mirror.py``; None: not run); ``kept_learned``: why the networks' estimate was kept over the TTO's result
+    ("": it was not; ``trust.py``)."""
 
     mode: str
     rig: dict[str, np.ndarray] = field(default_factory=dict)

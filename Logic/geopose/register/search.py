@@ -8,7 +8,7 @@ views' mean mNCC (float64) between the model-geometry target and the DRR, both a
 image size, is kept and the directions are tried again; a step size ends when no move
 improves. The coarse steps score small images (the renderer then samples a coarser CTA
 level: a third of the time), the finest the networks' render size. The turn about the axis
-both views share is left to the TTO: it barely changes either image (``biplane.valley_turn``).
+both views share is left to the TTO: it barely changes either image (``axis_search.valley_turn``).
 No PyTorch: it runs on either engine, so the torch-free engine's result gains it too. numpy
 poses (centred CTA frame, RAS axes x, y, z); any renderer.
 """

@@ -1,11 +1,6 @@
-"""Test-time optimisation of the GeoReg objective (paper section 2.3.3), in torch.
-
-Per view: ``w * (-mNCC(target, image)) + (1 - w) * GeneralizedDice(sigmoid(cranium
-channel), DSA mask > 0)``, summed over views (optionally plus the biplanar term).
-``image`` is the DRR, by default sent through the target's own intensity clip (its
-percentiles over the DSA mask's columns, then masked: :class:`.objective.Objective`, whose
-numpy score is the same objective without gradients), so that a saturated MAP silhouette
-is compared with a saturated DRR silhouette.
+"""Test-time optimisation (paper section 2.3.3), in torch: the objective of ``objective.py``
+(:func:`.objective.view_terms`, differentiable), summed over views (optionally plus the biplanar
+term), minimised through the differentiable renderer.
 
 Two parameterisations:
 
@@ -19,10 +14,10 @@ NAdam with a OneCycle schedule. Coarse to fine: the first ``coarse_fraction`` of
 render at half the image size (a coarser CTA level, a quarter of the rays), the rest at
 full size. The result is the pose of best full-size objective seen, the start included
 (per view for independent views, jointly for a patient pose; the paper's schedule keeps
-each view's best mNCC). :func:`test_time_optimise_starts` runs one patient pose from several
-starts as a tournament: all through the coarse steps, the best few (by the full-size loss
-after them and the first common-axis search) on to the end; there the vessels the runs show
-opacified are read and the runs near the best compare those alone (:mod:`.opacified`). Poses in and out are numpy
+each view's best mNCC). After the coarse steps a patient pose's vessel term keeps the vessels
+the runs show opacified (:func:`restrict_to_opacified`, ``opacified.py``); the common-axis
+search (``axis_search.py``) moves it along the valley the objective is flattest in; several
+starts run as a tournament (``tournament.py``). Poses in and out are numpy
 ``(4, 4)`` (centred CTA frame, mm); this is the one stage that needs PyTorch.
 """
 
@@ -31,7 +26,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Mapping, Sequence
+from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
 
@@ -39,16 +34,17 @@ from .. import contract as C
 from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
-from .biplane import common_axis, patient_pose, valley_turn, view_poses
-from .objective import Objective, clip_like_target, combine, fit_like_target
+from .axis_search import best_turn, valley_turn
+from .biplane import common_axis, patient_pose, view_poses
+from .objective import Objective, view_terms
 from .opacified import VesselSelection, read_opacified, vessel_shift_mm
 from .progress import Monitor
 
 if TYPE_CHECKING:
     from ..dsa import PreparedDSA
 
-__all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "test_time_optimise", "test_time_optimise_starts",
-           "biplanar_penalty", "tto_views"]
+__all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "TTOImages", "TTORun", "test_time_optimise",
+           "restrict_to_opacified", "biplanar_penalty", "tto_views"]
 
 #: The render channels the objective uses: the total density, the cranium and the vessels.
 TTO_CHANNELS = ("total", "cranium", "vessels")
@@ -92,7 +88,7 @@ class TTOSchedule:
 
     ``axis_search_at``: fractions of the steps after which a patient pose is moved along the
     common-axis valley (the turn about the axis both views see worst, which the prior holds,
-    with the compensation of the other parameters: :func:`.biplane.valley_turn`) to the
+    with the compensation of the other parameters: :func:`.axis_search.valley_turn`) to the
     objective's best along it: turns of ``-step, 0, +step`` (deg) scored at full size, the vertex
     of the parabola through them (within twice the step) scored too, the best kept (docs/tto_schedule.md).
     ``rotation_prior_per_rad2``: the weight of the prior on that turn (:data:`ROTATION_PRIOR_PER_RAD2`).
@@ -169,7 +165,7 @@ def _half(view: TTOView) -> tuple[np.ndarray, np.ndarray, np.ndarray, Detector]:
     return target, mask, vessels, det
 
 
-class _Images:
+class TTOImages:
     """Each view's target, mask, detector and DRR kernel at full and half size, and the objective."""
 
     def __init__(self, renderer: TorchRenderer, views: list[TTOView], objective: Objective) -> None:
@@ -178,7 +174,7 @@ class _Images:
         self.vessel_term: dict[str, bool] = {}
         self.bind(renderer)
 
-    def rebound(self, renderer: TorchRenderer) -> "_Images":
+    def rebound(self, renderer: TorchRenderer) -> "TTOImages":
         """The same targets and terms rendered through ``renderer`` (e.g. one whose vessel channel
         holds the opacified vessels only)."""
         other = copy.copy(self)
@@ -210,7 +206,7 @@ class _Images:
     def valley_points(self) -> np.ndarray:
         """At most ``VALLEY_POINTS`` voxel centres (mm, centred CTA frame) of the vessels the objective
         renders (the cranium's without vessels), evenly strided: what the common-axis search keeps
-        still (:func:`.biplane.valley_turn`)."""
+        still (:func:`.axis_search.valley_turn`)."""
         if self._valley_points is None:
             volume = self.renderer.volume
             mask = volume.mask("vessels")
@@ -222,23 +218,13 @@ class _Images:
 
     def loss(self, name: str, pose, size: str):
         """(loss, mNCC, Dice loss, vessel NCC or None) of view ``name`` at ``pose`` ``(1, 4, 4)``
-        (torch, differentiable; :func:`.objective.combine` weighs the terms)."""
+        (torch, differentiable; :func:`.objective.view_terms`)."""
         import torch
-
-        from ..metrics.losses import generalized_dice_loss, mncc_similarity, ncc_similarity
 
         target, mask, vessels, det, drr = self.levels[name, size]
         img = drr(pose, detector=det, channels=self.channels)
-        image = img[:, :1]
-        model = self.objective.silhouette if size == "full" else self.objective.coarse_silhouette
-        if model == "clipped":
-            image = clip_like_target(image[0, 0], mask[0, 0], self.objective.clip_percentiles, xp=torch)[None, None]
-        elif model == "fitted":
-            image = fit_like_target(image[0, 0], target[0, 0], mask[0, 0], xp=torch)[None, None]
-        sim = mncc_similarity(target, image)
-        dice = generalized_dice_loss(torch.sigmoid(img[:, 1:2]), mask)
-        vessel = ncc_similarity(vessels, img[:, 2:3]) if self.vessel_term[name] else None
-        return combine(self.objective, sim, dice, vessel), sim, dice, vessel
+        return view_terms(img[0, 0], img[0, 1], img[0, 2], target[0, 0], mask[0, 0], vessels[0, 0], self.objective,
+                          coarse=size != "full", vessel_term=self.vessel_term[name], xp=torch)
 
 
 class _PatientParams:
@@ -267,7 +253,7 @@ class _PatientParams:
 
     def move_along(self, start: tuple, direction: tuple[np.ndarray, np.ndarray], angle_rad: float) -> None:
         """Set ``w, v`` to the ``start`` ``(w, v)`` moved by ``angle_rad`` along ``direction`` (rotation
-        rad/rad, shift mm/rad: :func:`.biplane.valley_turn`), as :func:`.biplane.moved_by` does."""
+        rad/rad, shift mm/rad: :func:`.axis_search.valley_turn`), as :func:`.biplane.moved_by` does."""
         import torch
 
         from ..geometry.rigid import axis_angle_to_matrix, matrix_to_axis_angle
@@ -317,11 +303,11 @@ class _ViewParams:
         return {k: pose_from_params(p[:, :3], p[:, 3:] * self.scale) for k, p in self.params.items()}
 
 
-class _Run:
-    """One optimisation from one start over shared :class:`_Images`: its parameters, NAdam with
+class TTORun:
+    """One optimisation from one start over shared :class:`TTOImages`: its parameters, NAdam with
     the OneCycle schedule, the best pose seen and the trace; :meth:`advance` runs it on in pieces."""
 
-    def __init__(self, images: _Images, poses: Mapping[str, np.ndarray], schedule: TTOSchedule,
+    def __init__(self, images: TTOImages, poses: Mapping[str, np.ndarray], schedule: TTOSchedule,
                  rig: Mapping[str, np.ndarray] | None, biplanar: bool, device) -> None:
         import torch
 
@@ -414,7 +400,7 @@ class _Run:
                                {k: float(v[1]) for k, v in losses.items()}, poses, it, prior)
 
     def _axis_search(self, it: int) -> None:
-        """Move the patient along the common-axis valley (:func:`.biplane.valley_turn`: the turn
+        """Move the patient along the common-axis valley (:func:`.axis_search.valley_turn`: the turn
         about the common axis with the other parameters' compensation) to the objective's best
         (``TTOSchedule``), and centre the rotation prior there."""
         import torch
@@ -434,13 +420,7 @@ class _Run:
             return sum(v[0] for v in losses.values())
 
         with torch.no_grad():
-            turns = [-step, 0.0, step]
-            scores = [score(d) for d in turns]
-            curvature = scores[0] + scores[2] - 2 * scores[1]
-            if curvature > 0:
-                turns.append(float(np.clip(step * (scores[0] - scores[2]) / (2 * curvature), -2 * step, 2 * step)))
-                scores.append(score(turns[-1]))
-            chosen = turns[int(np.argmin(scores))]
+            turns, scores, chosen = best_turn(score, step)
             params.move_along(start, direction, math.radians(chosen))
             params.w_ref.copy_(params.w.detach())
         self.result.axis_searches.append({
@@ -488,38 +468,13 @@ class _Run:
         return result
 
 
-def test_time_optimise(
-    renderer: TorchRenderer,
-    views: list[TTOView],
-    schedule: TTOSchedule = TTOSchedule(),
-    *,
-    objective: Objective = Objective(),
-    rig: Mapping[str, np.ndarray] | None = None,
-    biplanar: bool = False,
-    monitor: Monitor | None = None,
-) -> TTOResult:
-    """Optimise the poses of ``views`` through ``renderer``'s differentiable kernel: one patient
-    pose when ``rig`` (``{view: A_v}``) is given (the views' start poses must be ``X @ A_v`` of one
-    ``X``; :func:`test_time_optimise_starts` with that one start), else each view's own
-    (``schedule.paper`` for the published schedule)."""
-    monitor = monitor or Monitor()
-    if rig is not None:
-        X = patient_pose(views[0].pose, rig[views[0].name])
-        return test_time_optimise_starts(renderer, views, {"start": X}, rig, schedule, objective=objective,
-                                         monitor=monitor)["start"]
-    run = _Run(_Images(renderer, views, objective), {v.name: v.pose for v in views}, schedule, None, biplanar,
-               renderer.device)
-    run.advance(run.n + 1, monitor)
-    monitor.step("tto", 1.0, "done")
-    return run.finish()
-
-
-def _restrict_to_opacified(images: _Images, runs: Mapping[str, _Run], leader: _Run, name: str, rig: Mapping[str, np.ndarray],
-                           it: int) -> None:
-    """Read the opacified vessels (``opacified.read_opacified``) at the patient pose ``leader`` (start
-    ``name``) reached at iteration ``it``; each of ``runs`` whose pose there places the vessels within
-    ``OPACIFIED_NEAR_MM`` of it renders the vessel channel from them alone from now on, its best pose
-    so far scored again with that objective, and holds the selection (:attr:`TTOResult.vessel_selection`)."""
+def restrict_to_opacified(runs: Mapping[str, TTORun], leader: TTORun, name: str, rig: Mapping[str, np.ndarray],
+                          it: int) -> None:
+    """Read the opacified vessels (``opacified.read_opacified``) at the patient pose the run ``leader`` (from start
+    ``name``) reached at iteration ``it``; each of ``runs`` (patient-pose runs over one :class:`TTOImages`) whose pose there places the
+    vessels within ``OPACIFIED_NEAR_MM`` of it renders the vessel channel from them alone from now on, its best
+    pose so far scored again with that objective, and holds the selection (:attr:`TTOResult.vessel_selection`)."""
+    images = leader.images
     views = [(v.name, v.vessels, v.detector) for v in images.views if images.vessel_term[v.name]]
     if not views:
         return
@@ -534,56 +489,34 @@ def _restrict_to_opacified(images: _Images, runs: Mapping[str, _Run], leader: _R
             run.result.vessel_selection = selection
 
 
-def test_time_optimise_starts(
+def test_time_optimise(
     renderer: TorchRenderer,
     views: list[TTOView],
-    starts: Mapping[str, np.ndarray],
-    rig: Mapping[str, np.ndarray],
     schedule: TTOSchedule = TTOSchedule(),
     *,
-    keep: Sequence[str] = (),
     objective: Objective = Objective(),
+    rig: Mapping[str, np.ndarray] | None = None,
+    biplanar: bool = False,
     monitor: Monitor | None = None,
-) -> dict[str, TTOResult]:
-    """One patient pose optimised from several starts ``{name: X}`` ``(4, 4)``, as a tournament:
-    every start runs the coarse steps (to its first full-size evaluation, after the first
-    common-axis search); there, with ``objective.read_opacified``, the vessels the runs show
-    are read at the pose of the start of lowest loss, and the runs near it compare those alone
-    from then on (``opacified.py``; :attr:`TTOResult.vessel_selection`); then the starts named in ``keep``
-    and the best others by the loss there (``schedule.finalists`` in all) run to the end.
-    Returns every run by name; a run stopped after the coarse steps has ``stopped_at`` set.
-    ``views`` give the targets (their poses only choose the CTA level and whether a view has a
-    vessel term)."""
+) -> TTOResult:
+    """Optimise the poses of ``views`` through ``renderer``'s differentiable kernel: one patient
+    pose when ``rig`` (``{view: A_v}``) is given (the views' start poses must be ``X @ A_v`` of one
+    ``X``; after the coarse steps, with ``objective.read_opacified``, the vessel term keeps the vessels
+    the runs show opacified), else each view's own (``schedule.paper`` for the published schedule).
+    ``tournament.optimise_from_starts`` runs one patient pose from several starts."""
     monitor = monitor or Monitor()
-    names = list(starts)
-    unknown = [k for k in keep if k not in starts]
-    if not names or unknown:
-        raise ValueError(f"need at least one start, and keep must name given starts (unknown: {unknown})")
-    images = _Images(renderer, views, objective)
-    runs = {name: _Run(images, view_poses(X, rig), schedule, rig, False, renderer.device) for name, X in starts.items()}
-    first = next(iter(runs.values()))
-    n_final = max(schedule.finalists, len(keep))
-    ranking: dict[str, float] = {}
-    finalists, offset, parts = names, 0, len(names)
-    if first.coarse > 0:  # every start through its first full-size evaluation (after the coarse steps and the first search)
-        offset = len(names)
-        parts = offset + min(n_final, len(names))
-        for i, name in enumerate(names):
-            runs[name].advance(first.coarse + 1, monitor.part(i, parts, f"from {name}"))
-        there = {name: runs[name].result.trace[first.coarse]["loss"] for name in names}
-        if len(names) > n_final:
-            ranking = there
-            ranked = sorted((k for k in names if k not in keep), key=ranking.get)
-            finalists = list(keep) + ranked[:n_final - len(keep)]
-        if objective.read_opacified:
-            leader = min(there, key=there.get)
-            _restrict_to_opacified(images, {k: runs[k] for k in finalists}, runs[leader], leader, rig, first.coarse)
-    for j, name in enumerate(finalists):
-        runs[name].advance(first.n + 1, monitor.part(offset + j, parts, f"from {name}"))
-    out = {}
-    for name, run in runs.items():
-        out[name] = run.finish()
-        out[name].stopped_at = None if name in finalists else run.it
-        out[name].ranking_loss = ranking.get(name)
+    images = TTOImages(renderer, views, objective)
+    if rig is None:
+        run = TTORun(images, {v.name: v.pose for v in views}, schedule, None, biplanar, renderer.device)
+        run.advance(run.n + 1, monitor)
+    else:
+        X = patient_pose(views[0].pose, rig[views[0].name])
+        run = TTORun(images, view_poses(X, rig), schedule, rig, False, renderer.device)
+        parts = 2 if run.coarse > 0 else 1
+        if run.coarse > 0:
+            run.advance(run.coarse + 1, monitor.part(0, parts, "coarse"))
+            if objective.read_opacified:
+                restrict_to_opacified({"start": run}, run, "start", rig, run.coarse)
+        run.advance(run.n + 1, monitor.part(parts - 1, parts, "full size"))
     monitor.step("tto", 1.0, "done")
-    return out
+    return run.finish()
