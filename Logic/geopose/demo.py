@@ -9,12 +9,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from . import contract as C
 from .cta import load_cta, save_volume
 from .phantom.cli import write_phantom
 from .phantom.labels import vessel_mask
 from .register.cli import print_summary, register_files
-from .options import BACKENDS, RegistrationOptions
+from .options import BACKENDS, RegistrationOptions, TTOSchedule
 
 DEMO_SEED = 20260
 
@@ -24,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--seed", type=int, default=DEMO_SEED, help="phantom subject seed")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    p.add_argument("--iterations", type=int, default=C.TTO_ITERATIONS, help="test-time optimisation steps")
+    p.add_argument("--iterations", type=int, default=TTOSchedule.iterations, help="test-time optimisation steps")
     p.add_argument("--backend", choices=BACKENDS, default="auto", help="auto, torch or onnxruntime")
     p.set_defaults(func=run)
 
@@ -49,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
           "(masks computed from them; the phantom's labels and truth serve only to score the result)")
     record = register_files(
         case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", out,
-        options=RegistrationOptions(iterations=args.iterations, device=args.device, backend=args.backend),
+        options=RegistrationOptions(device=args.device, backend=args.backend).replace(**{"tto.iterations": args.iterations}),
     )
     print_summary(record, out)
     return 0

@@ -27,7 +27,7 @@ from geopose.errors import InputError
 from geopose.geometry import CArmAngles, Detector
 from geopose.nets.checkpoint import import_checkpoint
 from geopose.nets.manifest import MANIFEST_NAME, verify_models
-from geopose.options import RegistrationOptions
+from geopose.options import RefineOptions, RegistrationOptions, TTOSchedule, setting_paths
 from geopose.register.cli import options_from_args, registration_option_args
 from geopose.volume import Volume
 
@@ -257,9 +257,9 @@ def test_angles_are_wrapped_on_read(tmp_path: Path):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--iterations", "-1"], "iterations = -1 is outside the plausible range 0..2000"),
-    (["--refine-steps", "-3"], "refine_steps = -3 is outside the plausible range 0..20"),
-    (["--tto-px", "1"], "tto_px = 1 is outside the plausible range 32..1024"),
+    (["--iterations", "-1"], "--iterations: tto.iterations = -1 is outside the plausible range 0..2000"),
+    (["--refine-steps", "-3"], "--refine-steps: refine.steps = -3 is outside the plausible range 0..20"),
+    (["--tto-px", "1"], "--tto-px: tto.px = 1 is outside the plausible range 32..1024"),
 ])
 def test_register_options_are_checked_before_any_file_is_read(tmp_path: Path, capsys, argv: list[str], message: str):
     code, err = _cli(capsys, ["register", "--cta", "nowhere.nii", "--dsa-pa", "a.dcm", "--dsa-lat", "b.dcm", "--out", str(tmp_path / "o"), *argv])
@@ -268,22 +268,33 @@ def test_register_options_are_checked_before_any_file_is_read(tmp_path: Path, ca
 
 
 def test_fractional_iterations_are_refused():
-    with pytest.raises(InputError, match="iterations must be a whole number, got 2.7"):
-        RegistrationOptions(iterations=2.7)
+    with pytest.raises(InputError, match="tto.iterations must be a whole number, got 2.7"):
+        TTOSchedule(iterations=2.7)
 
 
 def test_command_line_switches_reach_the_options():
     parser = argparse.ArgumentParser()
     registration_option_args(parser)
     assert options_from_args(parser.parse_args([])) == RegistrationOptions()
-    options = options_from_args(parser.parse_args(["--no-search", "--independent-views"]))
-    assert options.search is False and options.independent_views is True and options.biplanar is False
+    options = options_from_args(parser.parse_args(["--no-search", "--independent-views", "--iterations", "7",
+                                                   "--objective-silhouette", "clipped"]))
+    assert options.search.enabled is False and options.independent_views is True and options.biplanar is False
+    assert options.tto.iterations == 7 and options.objective.silhouette == "clipped"
+    assert options.refine == RefineOptions() and options.tto.px is None  # flags not given keep the tree's defaults
 
 
-@pytest.mark.parametrize("name", ["independent_views", "search", "biplanar"])
-def test_switches_take_only_true_or_false(name: str):
-    with pytest.raises(InputError, match=f"{name} must be True or False, got 'no'"):
-        RegistrationOptions(**{name: "no"})
+@pytest.mark.parametrize("path", ["independent_views", "search.enabled", "biplanar", "objective.read_opacified"])
+def test_switches_take_only_true_or_false(path: str):
+    with pytest.raises(InputError, match=f"{path} must be True or False, got 'no'"):
+        RegistrationOptions().replace(**{path: "no"})
+
+
+def test_every_setting_has_one_flag_and_unknown_paths_are_refused():
+    """The command line is generated from the options tree: one flag per offered setting, none twice."""
+    flags = [s.flag for _, s in setting_paths() if s.cli]
+    assert len(flags) == len(set(flags)) and {"--iterations", "--refine-steps", "--tto-px", "--search"} <= set(flags)
+    with pytest.raises(InputError, match="unknown registration option"):
+        RegistrationOptions().replace(**{"tto.steps": 3})
 
 
 @pytest.mark.parametrize("array, message", [

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from geopose.options import RegistrationOptions
+from geopose.options import RegistrationOptions, SearchOptions, TTOSchedule
 from geopose.bench import BenchSettings, convergence_figure, markdown, row_names, seed_range, summarise, training_seeds
 from geopose.bench.run import INSTANT_ROW, LEARNED_ROW, SEARCH_ROW
 from geopose.cli import main
@@ -100,7 +100,7 @@ def test_convergence_figure_is_written(tmp_path):
 
 
 def test_rows_compare_the_biplane_method_with_the_published_pipeline():
-    rows = row_names(BenchSettings(RegistrationOptions(iterations=25), long_iterations=400))
+    rows = row_names(BenchSettings(RegistrationOptions(tto=TTOSchedule(iterations=25)), long_iterations=400))
     assert rows[:2] == ["DICOM angles", "DICOM angles + 25 TTO"]
     assert rows[2:6] == ["biplane: Init", INSTANT_ROW, SEARCH_ROW, FINAL]
     assert rows[6:10] == ["independent: Init", "independent: Init + Refine x1", "independent: greedy Refine",
@@ -108,7 +108,7 @@ def test_rows_compare_the_biplane_method_with_the_published_pipeline():
     assert rows[10] == "truth + 25 TTO (drift)" and rows[-1] == "DICOM angles + 400 TTO"
     assert rows[11:13] == ["upper bound (truth masks): greedy Refine + search", "upper bound (truth masks): greedy Refine + 25 TTO"]
     assert "DICOM angles + 400 TTO" not in row_names(BenchSettings(long_iterations=0))
-    assert SEARCH_ROW not in row_names(BenchSettings(RegistrationOptions(search=False)))
+    assert SEARCH_ROW not in row_names(BenchSettings(RegistrationOptions(search=SearchOptions(enabled=False))))
 
 
 def test_training_seeds_are_read_from_the_manifest_and_refused(tmp_path, capsys):
@@ -129,7 +129,7 @@ def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     assert code == 0
     data = json.loads((out / "bench.json").read_text())
     case = data["cases"][0]
-    assert set(case["rows"]) == set(row_names(BenchSettings(RegistrationOptions(iterations=2), long_iterations=3)))
+    assert set(case["rows"]) == set(row_names(BenchSettings(RegistrationOptions(tto=TTOSchedule(iterations=2)), long_iterations=3)))
     for row in case["rows"].values():
         for metrics in row.values():
             assert metrics["mpcd_mm"] >= 0 and -1 <= metrics["ncc"] <= 1

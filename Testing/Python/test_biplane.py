@@ -26,6 +26,7 @@ from geopose.register.biplane import (
     turned_about,
     view_poses,
 )
+from geopose.options import RefineOptions, SearchOptions, TTOSchedule
 from geopose.register.axis_search import valley_turn
 from geopose.register.init import InitStage
 from geopose.register.refine import refine_from_starts
@@ -114,7 +115,7 @@ def test_common_axis_is_normal_to_both_rays_and_only_it_is_held_by_the_tto_prior
     """PA + lateral share the superior-inferior axis; the TTO's rotation prior costs a rotation
     about it and nothing for the rotations each view sees in-plane; one view has no common axis."""
     torch = pytest.importorskip("torch")
-    from geopose.register.tto import ROTATION_PRIOR_PER_RAD2, _PatientParams
+    from geopose.register.tto import _PatientParams
 
     X = _patient()
     axis = common_axis({"pa": X, "lat": X}, RIG)
@@ -129,14 +130,14 @@ def test_common_axis_is_normal_to_both_rays_and_only_it_is_held_by_the_tto_prior
     params = _PatientParams(X, RIG, "cpu")
     with torch.no_grad():
         params.w.copy_(torch.as_tensor(0.1 * axis))
-        assert float(params.rotation_prior()) == pytest.approx(ROTATION_PRIOR_PER_RAD2 * 0.01)
+        assert float(params.rotation_prior()) == pytest.approx(TTOSchedule.rotation_prior_per_rad2 * 0.01)
         for key in ("pa", "lat"):  # rotation about a central ray: in-plane in that view, free
             params.w.copy_(torch.as_tensor(0.1 * _ray(key, X)))
             assert float(params.rotation_prior()) == pytest.approx(0.0, abs=1e-12)
     alone = _PatientParams(X, {"pa": RIG["pa"]}, "cpu")
     with torch.no_grad():
         alone.w.copy_(torch.as_tensor(0.1 * _ray("pa", X)))
-        assert float(alone.rotation_prior()) == pytest.approx(ROTATION_PRIOR_PER_RAD2 * 0.01)
+        assert float(alone.rotation_prior()) == pytest.approx(TTOSchedule.rotation_prior_per_rad2 * 0.01)
 
 
 def test_the_valley_turn_moves_the_projections_least_and_the_tto_moves_along_it():
@@ -208,7 +209,7 @@ def test_biplane_greedy_fuses_both_views_retries_half_a_rejected_move_and_stops(
     # (accepted); proposal 3 heads far away: it and its retry are rejected and the loop stops.
     oracle = QueuedRefine(towards(start, overshoot) + towards(halfway, X_true) + towards(X_true, away))
     traces = refine_from_starts(renderer, targets, {"start": start}, RIG, {"pa": C.VIEW_PA, "lat": C.VIEW_LAT_PLUS}, oracle,
-                                RENDER_PX, max_proposals=5).traces
+                                RENDER_PX, options=RefineOptions(steps=5)).traces
     for key in RIG:
         assert [p.accepted for p in traces[key].proposals] == [False, True, True, False, False]
         np.testing.assert_allclose(traces[key].proposals[1].pose, halfway @ RIG[key], atol=1e-6)
@@ -321,7 +322,7 @@ def test_similarity_search_recovers_shift_and_in_plane_turns_and_keeps_the_truth
     targets = {k: render_model_view(renderer, truth[k], RENDER_PX) for k in RIG}
     # Started at the truth: every neighbour scores lower, nothing moves; 10 moves per step size.
     kept = similarity_search(renderer, targets, X_true, RIG, RENDER_PX)
-    assert kept.moves == [] and kept.evaluations == 1 + 11 * len(C.SEARCH_SCHEDULE)
+    assert kept.moves == [] and kept.evaluations == 1 + 11 * len(SearchOptions.schedule)
     np.testing.assert_allclose(kept.patient_pose, X_true, atol=1e-12)
     # Off by a shift in every axis and a turn about each central ray (each view's in-plane rotation).
     start = moved_by(X_true, np.radians(3.0) * _ray("pa", X_true) - np.radians(2.0) * _ray("lat", X_true),
@@ -333,4 +334,4 @@ def test_similarity_search_recovers_shift_and_in_plane_turns_and_keeps_the_truth
     assert np.degrees(rotation_angle_rad(found.patient_pose[:3, :3] @ X_true[:3, :3].T)) <= 1.0
     assert {name for name, _ in found.moves} <= {"shift x (mm)", "shift y (mm)", "shift z (mm)",
                                                   "turn about the PA ray (deg)", "turn about the LAT ray (deg)"}
-    assert {abs(step) for _, step in found.moves} <= {step for step, _ in C.SEARCH_SCHEDULE}
+    assert {abs(step) for _, step in found.moves} <= {step for step, _ in SearchOptions.schedule}

@@ -22,7 +22,7 @@ from geopose.cta import save_volume
 from geopose.geometry import Detector, isopose
 from geopose.geometry import poses as N
 from geopose.nets.decoding import select_view
-from geopose.options import RegistrationOptions
+from geopose.options import RegistrationOptions, TTOSchedule
 from geopose.register import register_case
 from geopose.render.density import hu_to_density
 from geopose.render.renderer import NumpyRenderer, TorchRenderer
@@ -148,7 +148,7 @@ def test_both_backends_give_the_same_registration_at_the_defaults(phantom_folder
     case = phantom_case(5003, phantom_folder, spacing_mm=3.0)
     results = {
         backend: register_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels,
-                               options=RegistrationOptions(backend=backend, iterations=0))
+                               options=RegistrationOptions(backend=backend, tto=TTOSchedule(iterations=0)))
         for backend in ("torch", "onnxruntime")
     }
     a, b = results["torch"], results["onnxruntime"]
@@ -230,7 +230,7 @@ def test_registration_runs_without_torch_and_matches_the_torch_engine(phantom_fo
 
     case = phantom_case(5003, phantom_folder, spacing_mm=3.0)
     result = register_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels,
-                           options=RegistrationOptions(backend="torch", iterations=0))
+                           options=RegistrationOptions(backend="torch", tto=TTOSchedule(iterations=0)))
     for key in ("pa", "lat"):
         view = record["views"][key]
         want = result.views[key].final_pose
@@ -245,7 +245,7 @@ _SLICER_RUN = """
 import json, sys
 from geopose import mrml
 from geopose.errors import InputError
-from geopose.options import RegistrationOptions
+from geopose.options import RegistrationOptions, TTOSchedule
 
 folder, repo = sys.argv[1], sys.argv[2]
 sys.path.insert(0, f"{repo}/Testing/Python")
@@ -263,7 +263,8 @@ try:
 except InputError as exc:
     refused = str(exc)
 messages = []
-out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, options=RegistrationOptions(iterations=25, model_clip_percentiles=(2, 98)),
+out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat,
+                     options=RegistrationOptions(tto=TTOSchedule(iterations=25), model_clip_percentiles=(2, 98)),
                      progress=lambda s, f, m: messages.append(m))
 json.dump({
     "refused": refused,
@@ -294,7 +295,7 @@ def test_slicer_logic_without_torch_runs_init_and_refine(phantom_folder):
     for key in ("pa", "lat"):
         np.testing.assert_allclose(out["pose_ras"][key], out["record_pose_ras"][key], atol=1e-6)
     assert out["table_rows"] == 2
-    assert out["options"]["model_clip_percentiles"] == [2.0, 98.0] and out["options"]["iterations"] == 25
+    assert out["options"]["model_clip_percentiles"] == [2.0, 98.0] and out["options"]["tto"]["iterations"] == 25
 
 
 def test_a_volume_with_a_vessel_subset_equals_one_built_with_it():

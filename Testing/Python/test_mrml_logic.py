@@ -17,7 +17,7 @@ from geopose import contract as C  # noqa: E402
 from geopose import mrml  # noqa: E402
 from geopose.dsa import DSARun  # noqa: E402
 from geopose.errors import InputError  # noqa: E402
-from geopose.options import RegistrationOptions  # noqa: E402
+from geopose.options import RegistrationOptions, TTOSchedule  # noqa: E402
 from geopose.geometry import CArmAngles, Detector, pose_from_carm_angles  # noqa: E402
 from test_mrml_adapters import _cta, _pose  # noqa: E402
 
@@ -189,7 +189,7 @@ def test_register_phantom_end_to_end(module, tmp_path):
     pa, _ = logic.importDSA(str(tmp_path / "dsa_pa.dcm"), "PA", ctaNode=cta)
     lat, _ = logic.importDSA(str(tmp_path / "dsa_lat.dcm"), "LAT", ctaNode=cta)
     before = mrml.volume_from_node(cta).array.copy()
-    out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, segmentation=seg, options=RegistrationOptions(iterations=5, device="cpu"))
+    out = logic.register(cta=cta, dsaPA=pa, dsaLAT=lat, segmentation=seg, options=RegistrationOptions(device="cpu", tto=TTOSchedule(iterations=5)))
     ctaVol = mrml.volume_from_node(cta)
     np.testing.assert_array_equal(ctaVol.array, before)
     for key in ("pa", "lat"):

@@ -18,7 +18,7 @@ import pytest
 from geopose.cta import load_cta
 from geopose.dsa import read_dsa
 from geopose.geometry import poses as N
-from geopose.options import RegistrationOptions
+from geopose.options import RegistrationOptions, TTOSchedule
 from geopose.phantom.cli import write_phantom
 from geopose.register import register_case
 from geopose.register.record import build_record
@@ -78,7 +78,8 @@ def test_torch_free_registration_and_dicom_writer_on_python39_with_pydicom_2_4(t
     assert out["python"] == [3, 9] and out["pydicom"] == "2.4.4" and not out["torch_loaded"] and out["engine"] == "onnxruntime"
     assert out["written_frames_equal"] and out["written_geometry_equal"]
     runs = {key: read_dsa(tmp_path / f"dsa_{key}.dcm") for key in ("pa", "lat")}
-    want = build_record(register_case(load_cta(tmp_path / "cta.nii.gz"), runs, options=RegistrationOptions(backend="onnxruntime", iterations=0)), runs)
+    options = RegistrationOptions(backend="onnxruntime", tto=TTOSchedule(iterations=0))
+    want = build_record(register_case(load_cta(tmp_path / "cta.nii.gz"), runs, options=options), runs)
     for key in runs:
         got, ref = np.asarray(out["pose_centred"][key]), np.asarray(want["views"][key]["pose_centred"])
         np.testing.assert_allclose(got[:3, 3], ref[:3, 3], atol=0.5)  # mm

@@ -24,7 +24,7 @@ from geopose.geometry.poses import axis_angle_to_matrix, matrix_to_axis_angle
 from geopose.metrics import mncc
 from geopose.metrics.measures import pose_error_components
 from geopose.nets import ModelSet, load_models
-from geopose.options import RegistrationOptions
+from geopose.options import RegistrationOptions, SearchOptions
 from geopose.phantom.cli import write_phantom, written_injected_arteries
 from geopose.phantom import labels as L
 from geopose.register import (
@@ -44,8 +44,9 @@ from geopose.register import (
 )
 from geopose.register.biplane import common_axis, nominal_poses, turned_about
 from geopose.register.evaluate import evaluate_pose, load_truth, truth_metrics
-from geopose.register.objective import (PAPER_OBJECTIVE, SILHOUETTE_MODELS, Objective, clip_like_target, combine,
-                                        fit_like_target, objective_value, silhouette_features, view_terms)
+from geopose.register.objective import (PAPER_OBJECTIVE, SILHOUETTE_MODELS, SILHOUETTE_NOISE_EXPONENT,
+                                        SILHOUETTE_NORM_PERCENTILE, Objective, clip_like_target, combine, fit_like_target,
+                                        objective_value, silhouette_features, view_terms)
 from geopose.register.tto import tto_views
 from geopose.register.record import SCHEMA_VERSION, build_record
 from geopose.register.report import write_overlays
@@ -133,7 +134,7 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
     labels = load_cta(case / "labels.nii.gz", check_hu=False)
     result = register_case(
         cta, runs, models=oracle_models(init, refine), segmentation=labels.like(L.vessel_mask(labels.array).astype(np.uint8)),
-        options=RegistrationOptions(backend="torch", device="cpu", tto_px=128),
+        options=RegistrationOptions(backend="torch", device="cpu", tto=TTOSchedule(px=128)),
         progress=lambda stage, f, msg: stages.append(stage),
     )
     # Calibration recovers the canonical->native transfer exactly (it is inverse(N)); the
@@ -174,11 +175,11 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
     json.dumps(record)  # JSON-ready
     pa = record["views"]["pa"]
     assert np.allclose(np.asarray(pa["pose_ras"]), cta.centred_to_ras @ np.asarray(pa["pose_centred"]))
-    assert len(record["tto_trace"]) == C.TTO_ITERATIONS + 1
+    assert len(record["tto_trace"]) == TTOSchedule.iterations + 1
     assert [s["iteration"] for s in record["tto_axis_searches"]] == sorted(TTOSchedule().axis_search_iterations())
     assert all(len(s["rotation_per_rad"]) == 3 and len(s["shift_mm_per_rad"]) == 3 for s in record["tto_axis_searches"])
     assert pa["quality"]["flag"] in ("ok", "doubtful", "failed")
-    assert record["engine"]["backend"] == "torch" and record["options"]["tto_px"] == 128
+    assert record["engine"]["backend"] == "torch" and record["options"]["tto"]["px"] == 128
     # Overlays: one PNG per view, three stages side by side, vessels drawn in colour.
     pngs = write_overlays(result, case / "overlays", load_truth(case / "cta.nii.gz").carotid_points_mm)
     assert [p.name for p in pngs] == ["overlay_pa.png", "overlay_lat.png"]
@@ -209,7 +210,7 @@ def test_tto_reaches_one_mm_on_a_consistent_target(phantom_case):
         target = clip_like_target(total, p.tto_mask > 0, C.MAP_CLIP_PERCENTILES)
         views.append(TTOView(key, target, p.tto_mask, vessels, p.tto_detector, _perturb(truth.poses[key])))
     # The silhouette and vessel terms (the Dice term compares the CTA's cranium with the DSA's head mask).
-    result = run_tto(renderer, views, TTOSchedule(C.TTO_ITERATIONS), objective=Objective(ncc_weight=1.0),
+    result = run_tto(renderer, views, TTOSchedule(), objective=Objective(ncc_weight=1.0),
                      rig=nominal_poses(runs))
     for view in views:
         run, true_pose = runs[view.name], truth.poses[view.name]
@@ -226,7 +227,7 @@ def test_tto_reaches_one_mm_on_a_consistent_target(phantom_case):
     peak = np.array([TTOSchedule().rotation_lr_rad, TTOSchedule().translation_lr_mm])
     assert result.trace[-1]["learning_rates"] is None
     np.testing.assert_allclose(rates.max(axis=0), peak, rtol=0.05)
-    np.testing.assert_allclose(rates[-1], C.TTO_FINAL_LR_FRACTION * peak, rtol=1e-6)
+    np.testing.assert_allclose(rates[-1], TTOSchedule.final_lr_fraction * peak, rtol=1e-6)
     with pytest.raises(ValueError, match="share of the peak learning rate"):
         TTOSchedule(final_lr_fraction=0.0)
 
@@ -418,8 +419,8 @@ def test_the_fitted_silhouette_is_the_least_squares_combination_of_its_basis():
     drr = rng.gamma(2.0, 1.5, (40, 52))
     mask = np.zeros(drr.shape)
     mask[4:36, 6:48] = 1
-    u = drr / np.quantile(drr[mask > 0], C.SILHOUETTE_NORM_PERCENTILE / 100)
-    target = (0.4 + 1.3 * u + 0.25 * np.exp(C.SILHOUETTE_NOISE_EXPONENT * np.minimum(u, 1.0))) * mask
+    u = drr / np.quantile(drr[mask > 0], SILHOUETTE_NORM_PERCENTILE / 100)
+    target = (0.4 + 1.3 * u + 0.25 * np.exp(SILHOUETTE_NOISE_EXPONENT * np.minimum(u, 1.0))) * mask
     np.testing.assert_allclose(silhouette_features(drr, mask)[1], np.exp(2.0 * np.minimum(u, 1.0)))
     fitted = fit_like_target(drr, target + 5.0 * (1 - mask), mask)  # what lies outside the mask is not fitted
     np.testing.assert_allclose(fitted, target, atol=1e-9)
@@ -476,7 +477,8 @@ def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     labels = load_cta(case / "labels.nii.gz", check_hu=False)
     result = register_case(
         cta, runs, models=oracle_models(init, OracleRefine([])), segmentation=labels.like(L.vessel_mask(labels.array).astype(np.uint8)),
-        options=RegistrationOptions(backend="torch", device="cpu", tto_px=96, iterations=6, search=False),
+        options=RegistrationOptions(backend="torch", device="cpu", tto=TTOSchedule(iterations=6, px=96),
+                                    search=SearchOptions(enabled=False)),
     )
     registration = result.registration
     assert registration.search is None and "search" not in result.views["pa"].stage_poses
@@ -513,7 +515,7 @@ def test_one_views_init_alone_is_a_start_when_the_other_view_is_far_off(phantom_
     seen: list[float] = []
     result = register_case(
         cta, runs, models=oracle_models(init, OracleRefine([])), segmentation=labels.like(L.vessel_mask(labels.array).astype(np.uint8)),
-        options=RegistrationOptions(backend="torch", device="cpu", tto_px=96),
+        options=RegistrationOptions(backend="torch", device="cpu", tto=TTOSchedule(px=96)),
         progress=lambda stage, f, message: seen.append(f) if stage == "tto" else None,
     )
     # The tournament's progress rises steadily through every start's share to the end.
@@ -557,7 +559,7 @@ def test_tto_started_at_the_truth_stays_near_it(phantom_case):
     published = run_tto(renderer, tto_views(prep.views, truth.poses), PAPER_SCHEDULE, objective=PAPER_OBJECTIVE)
     paper = drift(published.poses)
     # The published schedule keeps PyTorch's OneCycle: it anneals to 1 / (25 x 1e4) of its peak.
-    assert published.trace[-2]["learning_rates"] == [pytest.approx(C.TTO_MAX_LR * C.PAPER_TTO_FINAL_LR_FRACTION)]
+    assert published.trace[-2]["learning_rates"] == [pytest.approx(PAPER_SCHEDULE.paper_lr * PAPER_SCHEDULE.final_lr_fraction)]
     assert max(ours.values()) <= TTO_DRIFT_BOUND_MM, ours
     assert sum(ours.values()) < sum(paper.values()), (ours, paper)
 

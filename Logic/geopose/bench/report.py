@@ -13,7 +13,7 @@ from typing import Callable
 
 import numpy as np
 
-from .. import contract as C
+from ..options import TTOSchedule
 from ..register.evaluate import SUCCESS_MPCD_MM
 from .run import DRIFT_ROW, INSTANT_ROW, LEARNED_ROW, NATIVE_TTO_ROW, SEARCH_ROW, UPPER_BOUND_ROW
 
@@ -62,7 +62,7 @@ def _stat(values) -> dict:
     return {"mean": float(np.mean(v)), "sd": float(np.std(v, ddof=1)) if len(v) > 1 else 0.0, "n": len(v)}
 
 
-def summarise(cases: list[dict], iterations: int = C.TTO_ITERATIONS) -> dict:
+def summarise(cases: list[dict], iterations: int = TTOSchedule.iterations) -> dict:
     """Subject-level statistics per row and metric, view accuracy, runtimes and the
     targets (``iterations``: the short TTO budget the rows were run with)."""
     rows: dict[str, dict] = {}
@@ -157,7 +157,7 @@ def _cell(s: dict, digits: int) -> str:
     return "-" if s["mean"] is None else f"{s['mean']:.{digits}f} ({s['sd']:.{digits}f})"
 
 
-def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int = C.TTO_ITERATIONS,
+def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int = TTOSchedule.iterations,
              dense: list[dict] | None = None) -> str:
     """The benchmark as Markdown: accuracy table, pose-error parts, view accuracy, targets,
     runtimes, the real-anatomy rows (``real``: cases of real head CTs with simulated runs) and the

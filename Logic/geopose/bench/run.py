@@ -69,14 +69,14 @@ class BenchSettings:
 
 def row_names(settings: BenchSettings, long: bool = True) -> list[str]:
     """Row labels in table order (the long-budget row only when ``long``)."""
-    n = settings.options.iterations
+    n = settings.options.tto.iterations
     rows = [
         "DICOM angles", NATIVE_TTO_ROW.format(n=n),
-        "biplane: Init", INSTANT_ROW, *([SEARCH_ROW] if settings.options.search else []), LEARNED_ROW.format(n=n),
+        "biplane: Init", INSTANT_ROW, *([SEARCH_ROW] if settings.options.search.enabled else []), LEARNED_ROW.format(n=n),
         "independent: Init", "independent: Init + Refine x1", "independent: greedy Refine",
         f"independent: greedy Refine + {n} TTO",
         DRIFT_ROW.format(n=n),
-        *([UPPER_BOUND_SEARCH_ROW] if settings.options.search else []), UPPER_BOUND_ROW.format(n=n),
+        *([UPPER_BOUND_SEARCH_ROW] if settings.options.search.enabled else []), UPPER_BOUND_ROW.format(n=n),
     ]
     if long and settings.long_iterations > 0:
         rows.append(f"DICOM angles + {settings.long_iterations} TTO")
@@ -115,7 +115,7 @@ def _curves(case: BenchCase, trace: list[dict]) -> dict:
 def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *, long: bool = True) -> dict:
     """All rows for ``case``: ``{"rows": {row: {view: metrics}}, "views": ..., "runtimes_s": ..., "curves": ...}``."""
     options = settings.options.replace(independent_views=False)
-    n = options.iterations
+    n = options.tto.iterations
     joint = register_case(case.cta, case.runs, models=models, options=options)
     paper = register_case(case.cta, case.runs, models=models, options=options.replace(independent_views=True))
     upper = register_case(case.cta, case.runs, models=models, options=options, cranium_mask=case.cranium,

@@ -13,17 +13,14 @@ from .. import contract as C
 from ..cta import cranium_mask_from_cta, vessel_mask_from_cta
 from ..dsa import LAT_ROLE, PA_ROLE, DSARun, PreparedDSA, preprocess_dsa
 from ..errors import InputError
+from ..options import TTO_PX_CPU
 from ..render.volume import RenderVolume
 from ..volume import Volume
 from .progress import Monitor
 
-__all__ = ["VIEW_KEYS", "TTO_PX_CUDA", "TTO_PX_CPU", "PreparedCase", "prepare_case", "check_view_keys", "silhouette_dice"]
+__all__ = ["VIEW_KEYS", "PreparedCase", "prepare_case", "check_view_keys", "silhouette_dice"]
 
 VIEW_KEYS = ("pa", "lat")
-#: Default TTO image size (pixels along the detector's longer side): the GPU affords
-#: the model resolution; on a CPU half of it.
-TTO_PX_CUDA = 256
-TTO_PX_CPU = 128
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,8 @@ from ..consistency import ALLOW_ID_MISMATCH_OPTION, check_inputs_belong_together
 from ..cta import load_cta
 from ..cta.io import file_sha256
 from ..dsa import geometry_override_args, geometry_overrides_from_args, read_dsa
-from ..options import BACKENDS, DEVICES, RegistrationOptions
+from ..errors import InputError
+from ..options import RegistrationOptions, setting_paths
 from ..outputs import OutputFolder
 from .evaluate import truth_for, truth_metrics
 from .engine import resolve_engine
@@ -27,35 +28,50 @@ from .record import build_record
 from .report import OVERLAY_NAMES, write_overlays
 from .results import CaseRegistration
 
-#: The options ``geopose register`` (and ``geopose bench``) take, by their RegistrationOptions names.
-OPTION_ARGS = ("backend", "device", "refine_steps", "iterations", "tto_px", "render_px", "model_clip_percentiles",
-               "work_spacing_mm", "independent_views", "search", "biplanar")
+#: Command-line group titles of the options tree's groups.
+OPTION_GROUPS = {"": "registration options", "refine": "greedy Refine options", "search": "similarity search options",
+                 "tto": "test-time optimisation options", "objective": "objective options"}
 
 
 def registration_option_args(p: argparse.ArgumentParser) -> None:
-    """Add the command-line options of :class:`RegistrationOptions` (defaults: its own)."""
-    d = RegistrationOptions()
-    p.add_argument("--backend", choices=BACKENDS, default=d.backend,
-                   help="torch (torch renderer and networks), onnxruntime (numpy renderer, shipped ONNX graphs), auto")
-    p.add_argument("--device", default=d.device, help=f"{', '.join(DEVICES)} or cuda:N (torch backend)")
-    p.add_argument("--refine-steps", type=int, default=d.refine_steps, help="greedy refinement proposals")
-    p.add_argument("--iterations", type=int, default=d.iterations, help="test-time optimisation steps (0: none)")
-    p.add_argument("--tto-px", type=int, help="TTO image size, pixels along the longer side (default: 256 on CUDA, 128 on CPU)")
-    p.add_argument("--render-px", type=int, help="network-input DRR size (default: the models' training size)")
-    p.add_argument("--model-clip-percentiles", type=float, nargs=2, metavar=("LO", "HI"),
-                   help="percentiles the networks' MAP is clipped to (default: the models' manifest, else 25 75); "
-                   "the TTO target keeps 25 75")
-    p.add_argument("--work-spacing-mm", type=float, help="finest voxel size (mm) the renderers sample (default: the CTA's)")
-    p.add_argument("--independent-views", action="store_true",
-                   help="register each view on its own (the published pipeline) instead of one patient pose seen by both arms")
-    p.add_argument("--no-search", dest="search", action="store_false",
-                   help="skip the similarity search after biplane greedy Refine (the networks' pose goes to the TTO as it is)")
-    p.add_argument("--biplanar", action="store_true", help="independent views: add the orthogonality term to the TTO")
+    """Add a flag for every setting of the options tree (:func:`geopose.options.setting_paths`) that the command
+    line offers, in one argument group per options group; a flag not given keeps the tree's default."""
+    groups: dict[str, argparse._ArgumentGroup] = {}
+    for path, s in setting_paths():
+        if not s.cli:
+            continue
+        group = path.rpartition(".")[0]
+        if group not in groups:
+            groups[group] = p.add_argument_group(OPTION_GROUPS[group])
+        default = "" if s.default is None or s.kind == "bool" else f" (default: {_shown(s.default)})"
+        kwargs: dict = {"dest": path, "default": None, "help": s.doc + default}
+        if s.kind == "bool":
+            kwargs["action"] = argparse.BooleanOptionalAction if s.default else "store_true"
+        elif s.kind == "percentiles":
+            kwargs.update(type=float, nargs=2, metavar=("LO", "HI"))
+        elif s.kind == "floats":
+            kwargs.update(type=float, nargs="+")
+        else:
+            kwargs.update(type={"int": int, "float": float}.get(s.kind, str), choices=s.choices)
+        if s.kind in ("int", "float", "floats", "device"):
+            kwargs["metavar"] = path.rpartition(".")[2].upper()
+        groups[group].add_argument(s.flag, **kwargs)
+
+
+def _shown(value: object) -> str:
+    return " ".join(f"{v:g}" for v in value) if isinstance(value, tuple) else str(value)
 
 
 def options_from_args(args: argparse.Namespace) -> RegistrationOptions:
-    """The :class:`RegistrationOptions` the command line gave (validated)."""
-    return RegistrationOptions(**{name: getattr(args, name) for name in OPTION_ARGS})
+    """The :class:`RegistrationOptions` the command line gave (validated): the tree's defaults where a flag was
+    not given."""
+    given = {s.flag: (path, getattr(args, path)) for path, s in setting_paths() if s.cli and getattr(args, path, None) is not None}
+    for flag, (path, value) in given.items():  # each flag checked alone, so an error names the flag the user typed
+        try:
+            RegistrationOptions().replace(**{path: value})
+        except InputError as error:
+            raise InputError(f"{flag}: {error}") from None
+    return RegistrationOptions().replace(**dict(given.values()))
 
 
 def register(sub: argparse._SubParsersAction) -> None:

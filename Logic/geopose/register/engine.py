@@ -18,10 +18,10 @@ import numpy as np
 from ..dsa import DSARun
 from ..errors import InputError
 from ..nets.predictors import ModelSet, load_models, resolve_torch_device
-from ..options import RegistrationOptions
+from ..options import TTO_PX_CPU, TTO_PX_CUDA, RegistrationOptions
 from ..render.renderer import Renderer, TorchRenderer, make_renderer
 from ..volume import Volume
-from .case import TTO_PX_CPU, TTO_PX_CUDA, PreparedCase, prepare_case
+from .case import PreparedCase, prepare_case
 from .progress import Monitor
 
 __all__ = ["NO_TORCH_TTO_NOTE", "Engine", "StageClock", "resolve_engine", "start_case", "torch_available",
@@ -136,9 +136,9 @@ def start_case(
     monitor: Monitor,
 ) -> tuple[Engine, PreparedCase]:
     """The engine ``options`` ask for and the case prepared for it (``case.py``; the TTO images at
-    256 px on CUDA, 128 on a CPU, unless ``options.tto_px`` says)."""
+    256 px on CUDA, 128 on a CPU, unless ``options.tto.px`` says)."""
     backend, device, model_set = resolve_engine(options, models)
-    tto_px = options.tto_px or (TTO_PX_CUDA if device.startswith("cuda") else TTO_PX_CPU)
+    tto_px = options.tto.px or (TTO_PX_CUDA if device.startswith("cuda") else TTO_PX_CPU)
     case = prepare_case(
         cta, dsa, cranium_mask=cranium_mask, segmentation=segmentation, dsa_masks=dsa_masks, tto_px=tto_px,
         model_clip_percentiles=options.model_clip_percentiles or model_set.clip_percentiles,

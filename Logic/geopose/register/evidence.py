@@ -9,6 +9,7 @@ import numpy as np
 
 from ..dsa import PreparedDSA
 from ..render.renderer import Renderer
+from ..options import Objective
 from .objective import ObjectiveValue, objective_value
 
 __all__ = ["ViewEvidence", "view_evidence"]
@@ -30,6 +31,7 @@ class ViewEvidence:
                 "dice_loss": float(self.final.dice_loss), "loss": self.final.loss}
 
 
-def view_evidence(renderer: Renderer, pose: np.ndarray, prepared: PreparedDSA) -> ViewEvidence:
-    """The objective (default weights) of one view at ``pose`` ``(4, 4)`` in its acquisition geometry."""
-    return ViewEvidence(objective_value(renderer, pose, prepared))
+def view_evidence(renderer: Renderer, pose: np.ndarray, prepared: PreparedDSA,
+                  objective: Objective = Objective()) -> ViewEvidence:
+    """The ``objective`` of one view at ``pose`` ``(4, 4)`` in its acquisition geometry."""
+    return ViewEvidence(objective_value(renderer, pose, prepared, objective))

@@ -26,6 +26,7 @@ from ..render.renderer import Renderer, TorchRenderer, make_renderer
 from ..render.volume import RenderVolume
 from ..volume import Volume
 from .biplane import view_poses
+from ..options import Objective, TTOSchedule
 from .objective import pair_objective
 from .progress import Monitor
 
@@ -77,15 +78,16 @@ def mirrored_volume(volume: RenderVolume) -> RenderVolume:
 
 
 def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], patient_pose: np.ndarray,
-                rig: Mapping[str, np.ndarray], device: str = "cpu", monitor: Monitor | None = None) -> MirrorTest:
+                rig: Mapping[str, np.ndarray], objective: Objective = Objective(), device: str = "cpu",
+                monitor: Monitor | None = None) -> MirrorTest:
     """The result at ``patient_pose`` ``(4, 4)`` (camera poses ``X @ A_v``, ``rig``) against the mirrored CTA
     optimised from it; ``renderer`` renders the CTA as registered, ``views`` are the prepared runs."""
-    from .tto import TTOSchedule, test_time_optimise, tto_views  # PyTorch, only when the test runs
+    from .tto import test_time_optimise, tto_views  # PyTorch, only when the test runs
 
     (monitor or Monitor()).step("mirror", 0.0, "weighing the result against the CTA mirrored left-right")
     mirrored = mirrored_volume(renderer.volume)
     start = view_poses(patient_pose, rig)
     result = test_time_optimise(TorchRenderer(mirrored, device), tto_views(views, start), TTOSchedule(MIRROR_TTO_ITERATIONS),
-                                rig=rig)
+                                objective=objective, rig=rig)
     judge = make_renderer(mirrored, renderer.engine, device)
-    return MirrorTest(pair_objective(renderer, start, views), pair_objective(judge, result.poses, views))
+    return MirrorTest(pair_objective(renderer, start, views, objective), pair_objective(judge, result.poses, views, objective))

@@ -23,9 +23,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .. import contract as C
 from ..dsa import PreparedDSA
 from ..metrics.similarity import generalized_dice_loss, mncc, ncc
+from ..options import SILHOUETTE_MODELS, Objective
 from ..render.renderer import Renderer
 
 __all__ = ["Objective", "PAPER_OBJECTIVE", "ObjectiveValue", "SILHOUETTE_MODELS", "clip_like_target", "fit_like_target",
@@ -34,37 +34,11 @@ __all__ = ["Objective", "PAPER_OBJECTIVE", "ObjectiveValue", "SILHOUETTE_MODELS"
 #: A numpy array or a torch tensor (the fitted silhouette serves both engines).
 Array = Any
 
-#: How the DRR's total channel is compared with the silhouette target: ``raw`` (the paper), ``clipped``
-#: like the target (:func:`clip_like_target`) or ``fitted`` to it (:func:`fit_like_target`).
-SILHOUETTE_MODELS = ("raw", "clipped", "fitted")
-
-
-@dataclass(frozen=True)
-class Objective:
-    """The objective's weights: ``vessel_weight`` on the vessel term (-NCC of the MAP's vessels
-    and the DRR's vessel channel; 0 where the CTA has no vessel channel), the rest on the
-    GeoReg silhouette terms, of which ``ncc_weight`` on -mNCC and the rest on the Dice loss.
-    ``silhouette``: the DRR the silhouette target is compared with (:data:`SILHOUETTE_MODELS`):
-    ``raw``, ``clipped`` (to its ``clip_percentiles`` over the DSA mask's columns, then masked)
-    or ``fitted`` (the noise-level model least-squares fitted to the target inside the mask,
-    :func:`fit_like_target`); ``coarse_silhouette``: the same at the TTO's half-size steps. The
-    fitted model's optimum lies nearest the truth, but it adapts its intensities to any pose, so far
-    from the truth it also rewards wrong ones; the clipped DRR's fixed mapping draws a start
-    10 deg off in, so the coarse steps use it (docs/silhouette.md).
-    ``read_opacified``: the TTO reads which vessels the runs show opacified after its coarse steps
-    and compares those alone from then on (``opacified.py``)."""
-
-    ncc_weight: float = C.TTO_NCC_WEIGHT
-    silhouette: str = "fitted"
-    coarse_silhouette: str = "clipped"
-    clip_percentiles: tuple[float, float] = C.MAP_CLIP_PERCENTILES
-    vessel_weight: float = 0.75
-    read_opacified: bool = True
-
-    def __post_init__(self) -> None:
-        for name in ("silhouette", "coarse_silhouette"):
-            if getattr(self, name) not in SILHOUETTE_MODELS:
-                raise ValueError(f"{name} must be one of {SILHOUETTE_MODELS}, got {getattr(self, name)!r}")
+#: The fitted silhouette (:func:`fit_like_target`) models the MAP's brightness as a + b u + c exp(k u), u the
+#: DRR over its 99.5th percentile inside the DSA mask: quantum noise (log domain) has an sd growing like
+#: exp(attenuation / 2), and the thickest head path attenuates about e^-4, so k = 2 (docs/silhouette.md).
+SILHOUETTE_NOISE_EXPONENT = 2.0
+SILHOUETTE_NORM_PERCENTILE = 99.5
 
 
 #: The paper's objective: the raw DRR against the clipped MAP, no vessel term.
@@ -98,8 +72,8 @@ def silhouette_features(image: Array, mask: Array, xp: ModuleType = np) -> Array
     u, exp(k min(u, 1)) and 1, with u the DRR over its 99.5th percentile inside ``mask``."""
     values = _constant(image)  # the scale is a constant to the gradient
     inside = values[mask > 0] if bool((mask > 0).any()) else values.reshape(-1)
-    u = image / max(float(xp.quantile(inside, C.SILHOUETTE_NORM_PERCENTILE / 100.0)), 1e-6)
-    return xp.stack((u, xp.exp(C.SILHOUETTE_NOISE_EXPONENT * xp.clip(u, None, 1.0)), xp.ones_like(u)))
+    u = image / max(float(xp.quantile(inside, SILHOUETTE_NORM_PERCENTILE / 100.0)), 1e-6)
+    return xp.stack((u, xp.exp(SILHOUETTE_NOISE_EXPONENT * xp.clip(u, None, 1.0)), xp.ones_like(u)))
 
 
 def _detached(a: Array) -> Array:
@@ -222,7 +196,8 @@ def objective_value(renderer: Renderer, pose: np.ndarray, prepared: PreparedDSA,
     return ObjectiveValue(float(loss), *terms)
 
 
-def pair_objective(renderer: Renderer, poses: "Mapping[str, np.ndarray]", views: "Mapping[str, PreparedDSA]") -> float:
+def pair_objective(renderer: Renderer, poses: "Mapping[str, np.ndarray]", views: "Mapping[str, PreparedDSA]",
+                   objective: Objective = Objective()) -> float:
     """The objective of every view in ``views`` at its pose in ``poses``, summed: how starts, TTO runs and
     hypotheses are compared."""
-    return float(sum(objective_value(renderer, poses[k], views[k]).loss for k in views))
+    return float(sum(objective_value(renderer, poses[k], views[k], objective).loss for k in views))

@@ -11,7 +11,7 @@ shows contrast where it lands (:func:`read_opacified`): a vessel the run does no
 on background in at least one of two orthogonal views, unless it overlaps a filled one in
 both. The test-time optimisation reads the selection once, after its coarse steps, at the
 pose of its best start, and the runs near that pose continue with it
-(``tto.test_time_optimise_starts``); far runs keep every vessel, whose wider net guides them
+(``tournament.optimise_from_starts``); far runs keep every vessel, whose wider net guides them
 better.
 """
 
@@ -22,13 +22,26 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .. import contract as C
 from ..geometry.detector import Detector
 from ..geometry.poses import project_points
 from ..images import bilinear_sample, gaussian_blur
 from ..render.volume import RenderVolume
 
-__all__ = ["VesselSelection", "read_opacified", "vessel_shift_mm"]
+__all__ = ["OPACIFIED_BLUR_PX", "OPACIFIED_THRESHOLD", "OPACIFIED_MIN_FRACTION", "OPACIFIED_NEAR_MM", "VesselSelection",
+           "read_opacified", "vessel_shift_mm"]
+
+#: Which of the CTA's vessels the runs show opacified (``register/opacified.py``). A vessel voxel is
+#: kept when, in every view with a vessel image, that image (blurred by ``OPACIFIED_BLUR_PX`` at the TTO
+#: size, scaled to max 1) reaches ``OPACIFIED_THRESHOLD`` where the voxel projects; when fewer than
+#: ``OPACIFIED_MIN_FRACTION`` of the voxels pass, the pose is taken as too far off and all are kept.
+OPACIFIED_BLUR_PX = 2.0
+OPACIFIED_THRESHOLD = 0.02
+OPACIFIED_MIN_FRACTION = 0.05
+#: A TTO run continues with the opacified vessels only when its patient pose places the CTA's vessels
+#: within this mean distance (mm) of where the selection was read; a farther run keeps all of them
+#: (they guide a far start better).
+OPACIFIED_NEAR_MM = 5.0
+
 
 
 @dataclass(frozen=True)
@@ -55,8 +68,8 @@ class VesselSelection:
         """The record's view of it (no voxel array)."""
         return {"applied": self.applied, "vessel_voxels": self.vessel_voxels, "kept_voxels": self.kept_voxels,
                 "kept_fraction": round(self.kept_fraction, 4), "start": self.start, "iteration": self.iteration,
-                "patient_pose": np.asarray(self.patient_pose).tolist(), "blur_px": C.OPACIFIED_BLUR_PX,
-                "threshold": C.OPACIFIED_THRESHOLD}
+                "patient_pose": np.asarray(self.patient_pose).tolist(), "blur_px": OPACIFIED_BLUR_PX,
+                "threshold": OPACIFIED_THRESHOLD}
 
 
 def vessel_shift_mm(volume: RenderVolume, selection: VesselSelection, patient: np.ndarray) -> float:
@@ -90,12 +103,12 @@ def read_opacified(
     points_mm = volume.cta.centred_points(kji)
     shown = np.full(len(kji), np.inf)
     for name, image, det in images:
-        smooth = gaussian_blur(image, (C.OPACIFIED_BLUR_PX, C.OPACIFIED_BLUR_PX))
+        smooth = gaussian_blur(image, (OPACIFIED_BLUR_PX, OPACIFIED_BLUR_PX))
         smooth /= max(float(smooth.max()), 1e-12)
         pixels, _ = project_points(np.asarray(patient, dtype=np.float64) @ rig[name], det, points_mm)
         shown = np.minimum(shown, bilinear_sample(smooth, pixels[:, 0], pixels[:, 1]))
-    passed = shown >= C.OPACIFIED_THRESHOLD
-    applied = passed.mean() >= C.OPACIFIED_MIN_FRACTION
+    passed = shown >= OPACIFIED_THRESHOLD
+    applied = passed.mean() >= OPACIFIED_MIN_FRACTION
     keep = np.zeros(vessels.shape, dtype=bool)
     keep[tuple(kji[passed if applied else slice(None)].T)] = True
     return VesselSelection(keep, len(kji), int(passed.sum()) if applied else len(kji), bool(applied), start, iteration,

@@ -90,29 +90,32 @@ def register_case(
         init = biplane_init(case, nets.init, calibration, rig, monitor)
     with clock("refine", engine):
         refined = refine_from_starts(renderer, case.model_targets(), refine_starts(init), rig, case.view_labels(),
-                                     nets.refine, render_px, options.refine_steps, monitor=monitor)
+                                     nets.refine, render_px, options.refine, monitor=monitor)
     learned = {key: trace.pose for key, trace in refined.traces.items()}
     estimate, X_learned, search = REFINED_START, patient_pose(learned["pa"], rig["pa"]), None
-    if options.search:
+    if options.search.enabled:
         with clock("search", engine):
-            search = similarity_search(renderer, case.model_targets(), X_learned, rig, render_px, monitor=monitor)
+            search = similarity_search(renderer, case.model_targets(), X_learned, rig, render_px, options.search.schedule,
+                                       monitor)
         estimate, X_learned, learned = SEARCHED_START, search.patient_pose, view_poses(search.patient_pose, rig)
     vessel_evidence, tournament = case.vessel_evidence, None
     notes += [] if vessel_evidence else [NO_VESSELS_NOTE]
     with clock("tto", engine):
-        starts = candidate_starts(renderer, case.views, rig, init, {estimate: X_learned}, vessel_evidence=vessel_evidence)
-        if options.iterations > 0 and engine.tto_renderer is None:
+        starts = candidate_starts(renderer, case.views, rig, init, {estimate: X_learned}, options.objective,
+                                  vessel_evidence=vessel_evidence)
+        if options.tto.iterations > 0 and engine.tto_renderer is None:
             notes.append(NO_TORCH_TTO_NOTE)
             monitor.step("tto", 1.0, NO_TORCH_TTO_NOTE)
-        elif options.iterations > 0:
-            tournament = run_tournament(renderer, engine.tto_renderer, case.views, starts, rig, options.iterations, monitor)
+        elif options.tto.iterations > 0:
+            tournament = run_tournament(renderer, engine.tto_renderer, case.views, starts, rig, options.tto, options.objective,
+                                        monitor)
         kept = kept_result(starts, tournament, (estimate, X_learned, learned), rig, vessel_evidence=vessel_evidence,
                            computed_vessels=segmentation is None)
     notes += [kept.kept_learned] if kept.kept_learned else []
     mirror = None
     if vessel_evidence and segmentation is not None and tournament is not None:
         with clock("mirror", engine):
-            mirror = mirror_test(renderer, case.views, kept.patient_pose, rig, engine.device, monitor)
+            mirror = mirror_test(renderer, case.views, kept.patient_pose, rig, options.objective, engine.device, monitor)
     registration = Registration(
         "biplane-rigid", rig, kept.patient_pose, dict(starts.objectives), kept.start,
         dict(tournament.runs) if tournament else {}, dict(tournament.objectives) if tournament else {},
@@ -121,7 +124,7 @@ def register_case(
     with clock("score", engine):
         outcomes = score_views(renderer, case, registration, inits=init.views, init_poses=view_poses(init.patient_pose, rig),
                                refined=refined.traces, learned=learned, finals=kept.poses, searched=search is not None,
-                               given_vessels=segmentation is not None)
+                               given_vessels=segmentation is not None, objective=options.objective)
     monitor.step("done", 1.0, "registration finished" + (" (" + notes[0] + ")" if notes else ""))
     return CaseRegistration(cta, case.labels_source, calibration, outcomes, tournament.result if tournament else None,
                             clock.total(), options, engine.describe(options, case), registration, renderer, notes)

@@ -48,17 +48,17 @@ def register_published(
         inits = init_views(case, engine.models.init, calibration, fix_side=False, monitor=monitor)
     with clock("refine", engine):
         refined = {key: greedy_refine(engine.renderer, case.model_target(key), inits[key].pose_native, inits[key].view,
-                                      engine.models.refine, engine.render_px, options.refine_steps, monitor)
+                                      engine.models.refine, engine.render_px, options.refine.steps, monitor)
                    for key in VIEW_KEYS}
     learned = {key: refined[key].pose for key in VIEW_KEYS}
     finals, tto = dict(learned), None
     with clock("tto", engine):
-        if options.iterations > 0 and engine.tto_renderer is None:
+        if options.tto.iterations > 0 and engine.tto_renderer is None:
             notes.append(NO_TORCH_TTO_NOTE)
             monitor.step("tto", 1.0, NO_TORCH_TTO_NOTE)
-        elif options.iterations > 0:
+        elif options.tto.iterations > 0:
             tto = test_time_optimise(engine.tto_renderer, tto_views(case.views, learned),
-                                     replace(PAPER_SCHEDULE, iterations=options.iterations), objective=PAPER_OBJECTIVE,
+                                     replace(PAPER_SCHEDULE, iterations=options.tto.iterations), objective=PAPER_OBJECTIVE,
                                      biplanar=options.biplanar, monitor=monitor)
             finals = dict(tto.poses)
     registration = Registration("independent views", nominal_poses(dsa), vessel_evidence=case.vessel_evidence)

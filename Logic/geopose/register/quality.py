@@ -7,7 +7,7 @@ Rule (thresholds named below; set on validation phantom runs, provisional for re
 * ``doubtful`` when mNCC < ``MNCC_OK``, Dice < ``DICE_OK``, the final pose
   turned more than ``AGREEMENT_DEG`` or moved the CTA's centre more than
   ``AGREEMENT_MM`` in the camera frame away from the learned estimate (Init +
-  Refine; ``pipeline.stage_agreement``), i.e. the stages disagree, or a consistency check of the
+  Refine; ``trust.stage_agreement``), i.e. the stages disagree, or a consistency check of the
   case failed (the pipeline passes its reasons: the network's lateral side against the
   acquisition angle's, two views placing the patient more than ``VIEW_DISAGREEMENT_MM``
   apart along the axis both see);

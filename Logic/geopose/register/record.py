@@ -19,6 +19,10 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 10: ``options`` is the options tree (``options.py``): the engine's settings at the top, each stage's in its
+#: group (``refine``, ``search``, ``tto``, ``objective``); ``options.tto.px`` was ``options.tto_px``,
+#: ``options.tto.iterations`` ``options.iterations``, ``options.refine.steps`` ``options.refine_steps``,
+#: ``options.search.enabled`` ``options.search``.
 #: 9: each view's ``evidence`` (the objective's terms at the final pose, ``register/evidence.py``),
 #: ``registration.vessel_evidence``, ``registration.bound`` (without vessel evidence, the move from the
 #: DICOM angles asked for and kept, ``register/bound.py``; null otherwise) and ``registration.mirror``
@@ -41,7 +45,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -156,7 +160,7 @@ def _search_entry(case: CaseRegistration) -> dict | None:
             "patient_pose_centred": _m(search.patient_pose), "evaluations": search.evaluations,
             "moves": [{"parameter": name, "step": step} for name, step in search.moves],
             "doc": "mNCC: the views' mean in the model geometry at the finest step's image size "
-            "(contract.SEARCH_SCHEDULE); steps in mm (shift) or deg (turn)"}
+            "(options.search.schedule); steps in mm (shift) or deg (turn)"}
 
 
 def _vessel_selection(case: CaseRegistration) -> dict | None:

@@ -4,7 +4,7 @@ Each proposal is ``T_new = inverse(D) @ T_current`` with ``D`` the network's res
 for (target, DRR at ``T_current``); it is accepted only if the multiscale NCC between
 target and render strictly increases, and the loop stops at the first rejection or
 after ``max_proposals`` (one patient pose seen by both arms: a rejected move is first tried
-once at :data:`.contract.GREEDY_RETRY_FRACTION` of its size). Scores in float64 (a float32
+once at ``RefineOptions.retry_fraction`` of its size). Scores in float64 (a float32
 mNCC of flat patches is off by about 0.005, enough to flip a decision). numpy poses; any
 renderer and Refine predictor. :func:`greedy_refine` refines one view's camera pose (the
 paper); :func:`refine_from_starts` one patient pose seen by both arms, from several starts.
@@ -17,10 +17,10 @@ from typing import Mapping
 
 import numpy as np
 
-from .. import contract as C
 from ..geometry.poses import invert
 from ..metrics.similarity import mncc
 from ..nets.predictors import RefinePredictor
+from ..options import RefineOptions
 from ..render.renderer import Renderer
 from .biplane import Observability, fuse_patient_poses, part_way, patient_pose
 from .calibration import render_model_view
@@ -37,7 +37,7 @@ def greedy_refine(
     view: int,
     refine: RefinePredictor,
     render_px: int,
-    max_proposals: int = C.GREEDY_MAX_PROPOSALS,
+    max_proposals: int = RefineOptions.steps,
     monitor: Monitor | None = None,
 ) -> RefineTrace:
     """Refine ``pose`` ``(4, 4)`` against a model-geometry ``target`` ``(1, 1, 256, 256)``."""
@@ -79,10 +79,9 @@ def refine_from_starts(
     views: Mapping[str, int],
     refine: RefinePredictor,
     render_px: int,
-    max_proposals: int = C.GREEDY_MAX_PROPOSALS,
+    options: RefineOptions = RefineOptions(),
     observability: Observability = Observability(),
     monitor: Monitor | None = None,
-    retry_fraction: float = C.GREEDY_RETRY_FRACTION,
 ) -> StartsRefined:
     """The gated refinement of one patient pose ``X`` seen by both arms (``T_v = X @ rig[v]``) from each
     pose in ``starts`` ``{name: (4, 4)}``; the end with the highest mean mNCC of the views wins (the first
@@ -91,7 +90,7 @@ def refine_from_starts(
     Each proposal applies every view's Refine residual to its own camera pose, reads the patient
     pose each implies and fuses them by what each view observes (:func:`.biplane.fuse_patient_poses`);
     it is accepted only if the mean mNCC of the views strictly increases; a rejected move is tried
-    once more at ``retry_fraction`` of its size (rotation and isocentre shift scaled alike) before
+    once more at ``options.retry_fraction`` of its size (rotation and isocentre shift scaled alike) before
     that start stops. Each view's trace holds poses ``X @ A_v``, that view's mNCC and the joint
     accept flags (a retry is a proposal of its own).
 
@@ -110,6 +109,7 @@ def refine_from_starts(
     traces = {n: {k: RefineTrace(X[n] @ rig[k], scores[n][k], X[n] @ rig[k], scores[n][k]) for k in keys} for n in X}
     score = {n: float(np.mean(list(scores[n].values()))) for n in X}
     running = list(X)
+    max_proposals = options.steps
     for step in range(max_proposals):
         if not running:
             break
@@ -131,7 +131,7 @@ def refine_from_starts(
                     X[n], images[n], scores[n], score[n] = candidate, cand_images[n], cand_scores[n], cand_score
                     improved.append(n)
             if not retry:
-                candidates = {n: part_way(X[n], moves[n], retry_fraction) for n in candidates if n not in improved}
+                candidates = {n: part_way(X[n], moves[n], options.retry_fraction) for n in candidates if n not in improved}
         running = [n for n in running if n in improved]
     for n in X:
         for k in keys:

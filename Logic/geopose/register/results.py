@@ -126,7 +126,7 @@ class Registration:
     (``chosen_start``); the opacified vessels the TTO read after its coarse steps
     (``vessel_selection``, ``opacified.py``; None: not read), by which alone ``tto_objective``
     compares the finalists; the consistency ``checks`` of the two views; the start of the
-    greedy Refine that won (``refine_start``, :func:`.biplane.combined_starts`) with every start's
+    greedy Refine that won (``refine_start``, :func:`.starts.refine_starts`) with every start's
     final mean mNCC (``refine_starts``); the similarity search after greedy Refine (``search``;
     None: it did not run); ``vessel_evidence``: whether the CTA's vessel mask held any vessel; ``bound``: without
     vessel evidence, the bounded move from the DICOM angles (``bound.py``); ``mirror``: the mirrored-CTA test

@@ -15,6 +15,7 @@ import numpy as np
 from .. import contract as C
 from ..dsa import PreparedDSA
 from ..metrics.similarity import mncc
+from ..options import Objective
 from ..render.renderer import Renderer
 from .case import VIEW_KEYS, PreparedCase, silhouette_dice
 from .evidence import view_evidence
@@ -55,7 +56,8 @@ def consistency_doubts(init: InitEstimate, label: int, registration: Registratio
 
 def score_views(renderer: Renderer, case: PreparedCase, registration: Registration, *, inits: Mapping[str, InitEstimate],
                 init_poses: Mapping[str, np.ndarray], refined: Mapping[str, RefineTrace], learned: Mapping[str, np.ndarray],
-                finals: Mapping[str, np.ndarray], searched: bool, given_vessels: bool) -> dict[str, ViewOutcome]:
+                finals: Mapping[str, np.ndarray], searched: bool, given_vessels: bool,
+                objective: Objective = Objective()) -> dict[str, ViewOutcome]:
     """Every view's outcome: the stages' poses (``learned``: the networks' estimate; ``finals``: the result) with
     the final scores and flag. The vessel NCC grades a pose only against a given segmentation
     (``given_vessels``): a computed mask holds veins and bone rims, and its NCC stays low at the truth (the
@@ -64,7 +66,7 @@ def score_views(renderer: Renderer, case: PreparedCase, registration: Registrati
     for key in VIEW_KEYS:
         view = case.views[key]
         score, dice = score_view(renderer, finals[key], view)
-        evidence = view_evidence(renderer, finals[key], view)
+        evidence = view_evidence(renderer, finals[key], view, objective)
         quality: Quality = assess(score, dice, *stage_agreement(learned[key], finals[key]),
                                   evidence=evidence if given_vessels else None, mirror=registration.mirror,
                                   doubts=consistency_doubts(inits[key], view.view_label, registration))

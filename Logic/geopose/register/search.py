@@ -3,7 +3,7 @@
 After greedy Refine, a derivative-free pattern search moves the patient pose ``X`` by what
 both views observe in-plane: the isocentre shift along each CTA axis (mm) and the turn about
 each view's central ray (deg; that view's in-plane rotation). Each move is tried in both
-directions at each step size of :data:`.contract.SEARCH_SCHEDULE`; an improvement of the
+directions at each step size of ``options.SearchOptions.schedule``; an improvement of the
 views' mean mNCC (float64) between the model-geometry target and the DRR, both at that step's
 image size, is kept and the directions are tried again; a step size ends when no move
 improves. The coarse steps score small images (the renderer then samples a coarser CTA
@@ -19,10 +19,10 @@ from typing import Mapping
 
 import numpy as np
 
-from .. import contract as C
 from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..metrics.similarity import mncc
+from ..options import SearchOptions
 from ..render.renderer import Renderer
 from .biplane import central_ray, moved_by
 from .progress import Monitor
@@ -45,7 +45,7 @@ def similarity_search(
     patient: np.ndarray,
     rig: Mapping[str, np.ndarray],
     render_px: int,
-    schedule: tuple[tuple[float, int | None], ...] = C.SEARCH_SCHEDULE,
+    schedule: tuple[tuple[float, int | None], ...] = SearchOptions.schedule,
     monitor: Monitor | None = None,
 ) -> SearchTrace:
     """Search the patient pose ``patient`` ``(4, 4)`` (camera poses ``X @ rig[v]``) against the

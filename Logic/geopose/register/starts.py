@@ -23,6 +23,7 @@ from ..dsa import PreparedDSA
 from ..render.renderer import Renderer
 from .biplane import view_poses
 from .init import InitStage
+from ..options import Objective
 from .objective import pair_objective
 
 __all__ = ["DICOM_START", "SEARCHED_START", "REFINED_START", "Starts", "refine_starts", "candidate_starts", "same_pose"]
@@ -77,11 +78,12 @@ class Starts:
 
 
 def candidate_starts(renderer: Renderer, views: Mapping[str, PreparedDSA], rig: Mapping[str, np.ndarray],
-                     init: InitStage, learned: Mapping[str, np.ndarray], *, vessel_evidence: bool) -> Starts:
-    """The TTO's candidate starts, each scored by the objective: the DICOM angles; with
+                     init: InitStage, learned: Mapping[str, np.ndarray], objective: Objective = Objective(), *,
+                     vessel_evidence: bool) -> Starts:
+    """The TTO's candidate starts, each scored by the ``objective``: the DICOM angles; with
     ``vessel_evidence`` also the fused Init, each view's Init and the networks' estimate
     (``learned``: ``{name: X}``)."""
     poses = {DICOM_START: np.eye(4)}
     if vessel_evidence:
         poses |= {"Init": init.patient_pose, **{f"Init {key.upper()}": X for key, X in init.implied.items()}, **learned}
-    return Starts(poses, {name: pair_objective(renderer, view_poses(X, rig), views) for name, X in poses.items()})
+    return Starts(poses, {name: pair_objective(renderer, view_poses(X, rig), views, objective) for name, X in poses.items()})

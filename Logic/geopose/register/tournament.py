@@ -3,7 +3,7 @@
 Every distinct candidate start (``starts.py``) runs the TTO's coarse steps; there the vessels the
 runs show opacified are read at the pose of the start of lowest loss, and the runs near it compare
 those alone from then on (``opacified.py``); the DICOM angles' run and the best other by the loss
-there (``TTOSchedule.finalists`` in all) run to the end. The finalists are compared by one
+there (``options.TTOSchedule.finalists`` in all) run to the end. The finalists are compared by one
 objective (``objective.py``; the opacified vessels alone, when they were read): the lowest wins,
 the DICOM angles' within :data:`OBJECTIVE_TIE` of it, so the result is never worse, by the
 objective, than the acquisition's own geometry optimised alike.
@@ -19,11 +19,12 @@ import numpy as np
 from ..dsa import PreparedDSA
 from ..render.renderer import Renderer, TorchRenderer, make_renderer
 from .biplane import view_poses
-from .objective import Objective, pair_objective
+from ..options import Objective, TTOSchedule
+from .objective import pair_objective
 from .opacified import VesselSelection
 from .progress import Monitor
 from .starts import DICOM_START, Starts
-from .tto import TTOImages, TTOResult, TTORun, TTOSchedule, TTOView, restrict_to_opacified, tto_views
+from .tto import TTOImages, TTOResult, TTORun, TTOView, restrict_to_opacified, tto_views
 
 __all__ = ["OBJECTIVE_TIE", "Tournament", "chosen_result", "optimise_from_starts", "run_tournament"]
 
@@ -110,13 +111,14 @@ class Tournament:
 
 
 def run_tournament(renderer: Renderer, tto_renderer: TorchRenderer, views: Mapping[str, PreparedDSA], starts: Starts,
-                   rig: Mapping[str, np.ndarray], iterations: int, monitor: Monitor) -> Tournament:
-    """The TTO (``iterations`` steps) from each distinct start, the DICOM angles' among the finalists;
+                   rig: Mapping[str, np.ndarray], schedule: TTOSchedule, objective: Objective, monitor: Monitor) -> Tournament:
+    """The TTO (``schedule``, ``objective``) from each distinct start, the DICOM angles' among the finalists;
     the finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
     runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), starts.distinct(), rig,
-                                TTOSchedule(iterations), keep=(DICOM_START,), monitor=monitor)
+                                schedule, keep=(DICOM_START,), objective=objective, monitor=monitor)
     selection = next((r.vessel_selection for r in runs.values() if r.vessel_selection), None)
     judge = renderer if selection is None else make_renderer(selection.volume, renderer.engine,
                                                                   str(getattr(renderer, "device", "cpu")))
-    objectives = {name: pair_objective(judge, run.poses, views) for name, run in runs.items() if run.stopped_at is None}
+    objectives = {name: pair_objective(judge, run.poses, views, objective) for name, run in runs.items()
+                  if run.stopped_at is None}
     return Tournament(runs, objectives, chosen_result(objectives), selection)

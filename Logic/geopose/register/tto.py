@@ -30,14 +30,14 @@ from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
 
-from .. import contract as C
 from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
 from .axis_search import best_turn, valley_turn
 from .biplane import common_axis, patient_pose, view_poses
-from .objective import Objective, view_terms
-from .opacified import VesselSelection, read_opacified, vessel_shift_mm
+from ..options import Objective, TTOSchedule
+from .objective import view_terms
+from .opacified import OPACIFIED_NEAR_MM, VesselSelection, read_opacified, vessel_shift_mm
 from .progress import Monitor
 
 if TYPE_CHECKING:
@@ -48,15 +48,10 @@ __all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "TTOImages",
 
 #: The render channels the objective uses: the total density, the cranium and the vessels.
 TTO_CHANNELS = ("total", "cranium", "vessels")
-#: Weight (per rad^2) of a prior holding a patient pose's rotation about the axis both image
-#: planes contain (:func:`.biplane.common_axis`) near its start (or where the last common-axis
-#: search put it): that rotation is out of plane in both views, its gradient is weak, and
-#: without the prior NAdam's normalised steps wander along it. The other two rotations are
-#: in-plane in one view and free: a prior on all three held the start's rotation error
-#: (docs/benchmark/bench.md, reading). The prior also holds the start's error about the common
-#: axis, which the objective does see over a few degrees; the common-axis search
-#: (:class:`TTOSchedule`) corrects it (docs/tto_schedule.md).
-ROTATION_PRIOR_PER_RAD2 = 10.0
+#: The published per-view parameterisation's translation scale: the TTO moves translation / 200 (mm).
+PAPER_TRANSLATION_SCALE_MM = 200.0
+#: Weight of the PA/lateral orthogonality term (``RegistrationOptions.biplanar``, independent views).
+BIPLANAR_WEIGHT = 0.1
 #: Most points (vessel voxel centres) the common-axis search projects to find its valley.
 VALLEY_POINTS = 3000
 
@@ -80,51 +75,9 @@ def tto_views(views: Mapping[str, "PreparedDSA"], poses: Mapping[str, np.ndarray
     return [TTOView(k, v.tto_image, v.tto_mask, v.tto_vessels, v.tto_detector, poses[k]) for k, v in views.items()]
 
 
-@dataclass(frozen=True)
-class TTOSchedule:
-    """Steps, the share of them at half size, and the peak learning rates (OneCycle): for a
-    patient pose, of its rotation (rad) and isocentre shift (mm); ``paper``: the published
-    per-view schedule instead (max 1e-2 on Euler angles and translation / 200).
-
-    ``axis_search_at``: fractions of the steps after which a patient pose is moved along the
-    common-axis valley (the turn about the axis both views see worst, which the prior holds,
-    with the compensation of the other parameters: :func:`.axis_search.valley_turn`) to the
-    objective's best along it: turns of ``-step, 0, +step`` (deg) scored at full size, the vertex
-    of the parabola through them (within twice the step) scored too, the best kept (docs/tto_schedule.md).
-    ``rotation_prior_per_rad2``: the weight of the prior on that turn (:data:`ROTATION_PRIOR_PER_RAD2`).
-    ``finalists``: with several starts (:func:`test_time_optimise_starts`), how many run on after
-    the coarse steps. ``final_lr_fraction``: the learning rate the OneCycle anneals to, as a share
-    of the peak (the full-size steps keep enough of it to remove the last degrees).
-    """
-
-    iterations: int = C.TTO_ITERATIONS
-    coarse_fraction: float = 0.6
-    rotation_lr_rad: float = 0.02
-    translation_lr_mm: float = 4.0
-    paper: bool = False
-    axis_search_at: tuple[float, ...] = (0.6, 0.7, 0.8, 0.9)
-    axis_search_step_deg: float = 4.0
-    rotation_prior_per_rad2: float = ROTATION_PRIOR_PER_RAD2
-    finalists: int = 2
-    final_lr_fraction: float = C.TTO_FINAL_LR_FRACTION
-
-    def __post_init__(self) -> None:
-        if not 0 < self.final_lr_fraction <= 1:
-            raise ValueError(f"final_lr_fraction is a share of the peak learning rate in (0, 1], "
-                             f"got {self.final_lr_fraction}")
-
-    def coarse_steps(self) -> int:
-        return int(round(self.iterations * self.coarse_fraction))
-
-    def axis_search_iterations(self) -> set[int]:
-        """The steps (strictly inside the run) before which the common-axis search runs."""
-        steps = {int(round(self.iterations * f)) for f in self.axis_search_at}
-        return {i for i in steps if 0 < i < self.iterations}
-
-
 #: The paper's schedule, all steps at full size (independent views).
 PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True, axis_search_at=(),
-                             final_lr_fraction=C.PAPER_TTO_FINAL_LR_FRACTION)
+                             final_lr_fraction=1.0 / (TTOSchedule.div_factor * 1e4))
 
 
 @dataclass
@@ -134,7 +87,7 @@ class TTOResult:
     step used (rad and mm for a patient pose; None on the last, which only evaluates) and per view
     the mNCC, Dice loss and pose;
     ``axis_searches``: per common-axis search its iteration, turns (deg), losses, choice and direction;
-    ``stopped_at``: the iteration a start of :func:`test_time_optimise_starts` stopped at when it
+    ``stopped_at``: the iteration a start of :func:`.tournament.optimise_from_starts` stopped at when it
     was not among the finalists (None: it ran to the end); ``ranking_loss``: the full-size loss
     at the first full-size iteration it was ranked by there (None without a ranking);
     ``vessel_selection``: the opacified vessels this run's vessel term kept from then on (None: all)."""
@@ -232,7 +185,7 @@ class _PatientParams:
     isocentre, CTA frame) and ``v`` (mm, isocentre shift)."""
 
     def __init__(self, X0: np.ndarray, rig: Mapping[str, np.ndarray], device,
-                 prior_per_rad2: float = ROTATION_PRIOR_PER_RAD2) -> None:
+                 prior_per_rad2: float = TTOSchedule.rotation_prior_per_rad2) -> None:
         import torch
 
         self.X0 = torch.as_tensor(X0, dtype=torch.float64, device=device)
@@ -288,14 +241,14 @@ class _ViewParams:
 
         from ..geometry.rigid import params_from_pose
 
-        self.scale = C.TTO_TRANSLATION_SCALE_MM
+        self.scale = PAPER_TRANSLATION_SCALE_MM
         self.params = {}
         for name, pose in poses.items():
             r, t = params_from_pose(torch.as_tensor(pose, dtype=torch.float64, device=device)[None])
             self.params[name] = torch.cat((r, t / self.scale), dim=-1).clone().requires_grad_(True)
 
     def groups(self, schedule: TTOSchedule) -> list[dict]:
-        return [{"params": list(self.params.values()), "lr": C.TTO_MAX_LR}]
+        return [{"params": list(self.params.values()), "lr": schedule.paper_lr}]
 
     def poses(self) -> dict:
         from ..geometry.rigid import pose_from_params
@@ -340,8 +293,8 @@ class TTORun:
             groups = self.params.groups(schedule)
             self.optimiser = torch.optim.NAdam(groups, lr=groups[0]["lr"])
             self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
-                self.optimiser, max_lr=[g["lr"] for g in groups], total_steps=self.n, pct_start=C.TTO_WARMUP_FRACTION,
-                div_factor=C.TTO_DIV_FACTOR, final_div_factor=1.0 / (C.TTO_DIV_FACTOR * schedule.final_lr_fraction),
+                self.optimiser, max_lr=[g["lr"] for g in groups], total_steps=self.n, pct_start=schedule.warmup_fraction,
+                div_factor=schedule.div_factor, final_div_factor=1.0 / (schedule.div_factor * schedule.final_lr_fraction),
                 cycle_momentum=False,
             )
 
@@ -359,7 +312,7 @@ class TTORun:
             total = total + view_loss
             rotations[name] = poses[name][:, :3, :3]
         if self.biplanar and len(self.names) == 2:
-            total = total + C.BIPLANAR_WEIGHT * biplanar_penalty(rotations[self.names[0]], rotations[self.names[1]]).sum()
+            total = total + BIPLANAR_WEIGHT * biplanar_penalty(rotations[self.names[0]], rotations[self.names[1]]).sum()
         if self.joint:
             total = total + self.params.rotation_prior()
         return total, losses, {k: p.detach()[0].cpu().numpy() for k, p in poses.items()}
@@ -483,7 +436,7 @@ def restrict_to_opacified(runs: Mapping[str, TTORun], leader: TTORun, name: str,
         return
     restricted = images.rebound(TorchRenderer(selection.volume, images.renderer.device))
     for run in runs.values():
-        if vessel_shift_mm(images.renderer.volume, selection, run.patient_at(it)) <= C.OPACIFIED_NEAR_MM:
+        if vessel_shift_mm(images.renderer.volume, selection, run.patient_at(it)) <= OPACIFIED_NEAR_MM:
             run.images = restricted
             run.rescore_best()
             run.result.vessel_selection = selection
