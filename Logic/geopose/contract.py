@@ -63,7 +63,7 @@ TTO_MAX_LR: Final = 1e-2
 TTO_WARMUP_FRACTION: Final = 0.3
 TTO_DIV_FACTOR: Final = 25.0
 #: The OneCycle's last learning rate as a share of its peak: the paper's (PyTorch's default
-#: ``final_div_factor`` 1e4, so 1 / (25 x 1e4)) and the patient-pose schedule's (docs/tto_schedule.md).
+#: ``final_div_factor`` 1e4, so 1 / (25 x 1e4)) and the patient-pose schedule's (experiments/tto_schedule/tto_schedule.md).
 PAPER_TTO_FINAL_LR_FRACTION: Final = 1.0 / (TTO_DIV_FACTOR * 1e4)
 TTO_FINAL_LR_FRACTION: Final = 0.1
 TTO_TRANSLATION_SCALE_MM: Final = 200.0
@@ -71,7 +71,7 @@ TTO_NCC_WEIGHT: Final = 0.5
 #: Ours: the objective's fitted silhouette (``register.objective.fit_like_target``) models the MAP's
 #: brightness as a + b u + c exp(k u), u the DRR over its 99.5th percentile inside the DSA mask: quantum
 #: noise (log domain) has an sd growing like exp(attenuation / 2), and the thickest head path attenuates
-#: about e^-4, so k = 2 (docs/silhouette.md).
+#: about e^-4, so k = 2 (experiments/tto_objective/silhouette.md).
 SILHOUETTE_NOISE_EXPONENT: Final = 2.0
 SILHOUETTE_NORM_PERCENTILE: Final = 99.5
 BIPLANAR_WEIGHT: Final = 0.1
@@ -79,11 +79,11 @@ BIPLANAR_WEIGHT: Final = 0.1
 # ------------------------------------------------------- DSA preprocessing
 MAP_CLIP_PERCENTILES: Final = (25.0, 75.0)
 #: Ours, not the paper's: the vessel image (bolus-weighted mean of the frames) keeps the percentiles (over the
-#: DSA cranium mask) between which the opacified vessels stand out of the noise (docs/objective.md).
+#: DSA cranium mask) between which the opacified vessels stand out of the noise (experiments/tto_objective/objective.md).
 VESSEL_CLIP_PERCENTILES: Final = (90.0, 99.9)
 #: Ours: the vessel image averages the frames weighted by the run's own bolus curve (a temporal matched
 #: filter, ``dsa.preprocess.bolus_weighted_mean``), the curve read from the pixels whose temporal mean is at
-#: or above this percentile over the DSA cranium mask (docs/objective_real_heads.md).
+#: or above this percentile over the DSA cranium mask (experiments/tto_objective/objective_real_heads.md).
 BOLUS_PIXEL_PERCENTILE: Final = 98.0
 #: Ours: which of the CTA's vessels the runs show opacified (``register/opacified.py``). A vessel voxel is
 #: kept when, in every view with a vessel image, that image (blurred by ``OPACIFIED_BLUR_PX`` at the TTO

@@ -7,8 +7,8 @@ vessel term ``-NCC(MAP vessels, DRR vessel channel)`` weighted ``vessel_weight``
 (:class:`Objective`). The MAP's head silhouette is made by quantum noise, whose level grows
 like exp(attenuation / 2) through the whole head (face and neck included), so a linear DRR
 clipped like the MAP has its optimum 1-3 deg from the truth on heads without vessels; a model
-of that level fitted to the MAP lies nearer on most (docs/silhouette.md). The opacified vessels
-are sharp and sit where the CTA's vessels project (docs/objective.md). The same
+of that level fitted to the MAP lies nearer on most (experiments/tto_objective/silhouette.md). The opacified vessels
+are sharp and sit where the CTA's vessels project (experiments/tto_objective/objective.md). The same
 objective, differentiable, is what the test-time optimisation minimises (``tto.py``);
 scores here decide between candidate starts and grade the final poses, on either engine.
 """
@@ -48,7 +48,7 @@ class Objective:
     :func:`fit_like_target`); ``coarse_silhouette``: the same at the TTO's half-size steps. The
     fitted model's optimum lies nearest the truth, but it adapts its intensities to any pose, so far
     from the truth it also rewards wrong ones; the clipped DRR's fixed mapping draws a start
-    10 deg off in, so the coarse steps use it (docs/silhouette.md).
+    10 deg off in, so the coarse steps use it (experiments/tto_objective/silhouette.md).
     ``read_opacified``: the TTO reads which vessels the runs show opacified after its coarse steps
     and compares those alone from then on (``opacified.py``)."""
 

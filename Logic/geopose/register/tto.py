@@ -59,7 +59,7 @@ TTO_CHANNELS = ("total", "cranium", "vessels")
 #: in-plane in one view and free: a prior on all three held the start's rotation error
 #: (docs/benchmark/bench.md, reading). The prior also holds the start's error about the common
 #: axis, which the objective does see over a few degrees; the common-axis search
-#: (:class:`TTOSchedule`) corrects it (docs/tto_schedule.md).
+#: (:class:`TTOSchedule`) corrects it (experiments/tto_schedule/tto_schedule.md).
 ROTATION_PRIOR_PER_RAD2 = 10.0
 #: Most points (vessel voxel centres) the common-axis search projects to find its valley.
 VALLEY_POINTS = 3000
@@ -94,7 +94,7 @@ class TTOSchedule:
     common-axis valley (the turn about the axis both views see worst, which the prior holds,
     with the compensation of the other parameters: :func:`.biplane.valley_turn`) to the
     objective's best along it: turns of ``-step, 0, +step`` (deg) scored at full size, the vertex
-    of the parabola through them (within twice the step) scored too, the best kept (docs/tto_schedule.md).
+    of the parabola through them (within twice the step) scored too, the best kept (experiments/tto_schedule/tto_schedule.md).
     ``rotation_prior_per_rad2``: the weight of the prior on that turn (:data:`ROTATION_PRIOR_PER_RAD2`).
     ``finalists``: with several starts (:func:`test_time_optimise_starts`), how many run on after
     the coarse steps. ``final_lr_fraction``: the learning rate the OneCycle anneals to, as a share

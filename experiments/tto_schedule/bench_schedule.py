@@ -5,7 +5,7 @@ detector) and the share of views under 5 mm, and how far apart two runs end that
 0.01 mm apart (a schedule whose result depends on such a difference is not reproducible
 across engines).
 
-    .venv/bin/python benchmarks/bench_schedule.py --seeds 5000-5005 --doc docs/tto_schedule.md
+    .venv/bin/python experiments/tto_schedule/bench_schedule.py --seeds 5000-5005 --doc experiments/tto_schedule/tto_schedule.md
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: heldout.py
 from heldout import parse_heldout_args, publish  # noqa: E402
 
 from geopose.bench.cases import phantom_case  # noqa: E402
@@ -90,7 +90,7 @@ def main() -> int:
         lines.append(f"| {name} | {m.mean():.2f} | {np.median(m):.2f} | {100 * (m < 5).mean():.0f} % | "
                      f"{np.mean(rotation[name]):.2f} | {s.mean():.2f} | {s.max():.2f} |")
     publish("\n".join(lines), args.doc, "Reach and stability of the TTO schedule",
-            f"python benchmarks/bench_schedule.py --seeds {seeds[0]}-{seeds[-1]} --spacing-mm {args.spacing_mm:g} --doc {args.doc}")
+            f"python experiments/tto_schedule/bench_schedule.py --seeds {seeds[0]}-{seeds[-1]} --spacing-mm {args.spacing_mm:g} --doc {args.doc}")
     return 0
 
 
