@@ -61,7 +61,7 @@ except ImportError:
     pass
 from geopose.cta import load_cta
 from geopose.dsa import read_dsa
-from geopose.options import RegistrationOptions
+from geopose.options import RegistrationOptions, TTOSchedule
 from geopose.register import register_case
 t0 = time.perf_counter()
 cta = load_cta(f"{folder}/cta.nii.gz")
@@ -73,7 +73,7 @@ def peak_rss_gb():
     with open("/proc/self/status") as f:
         return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1e6
 rss_before = peak_rss_gb()
-result = register_case(cta, runs, segmentation=seg, options=RegistrationOptions(backend=backend, iterations=iterations))
+result = register_case(cta, runs, segmentation=seg, options=RegistrationOptions(backend=backend, tto=TTOSchedule(iterations=iterations)))
 out = dict(result.runtimes_s, read=read_s, peak_rss_gb=peak_rss_gb(),
            rss_after_reading_gb=rss_before, engine=result.engine, notes=result.notes,
            poses={k: v.final_pose.tolist() for k, v in result.views.items()})

@@ -6,7 +6,7 @@ empty). Times each mask (wall s, the CPUs this process may use).
 
     nice .venv/bin/python benchmarks/bench_vessels.py --seeds 5000-5019 --spacing 2 --fine-seeds 5000-5002 \\
         --headsq ../shared/data/headsq/quarter_sidecar.mhd --ge-head ../shared/data/ge_head_ct_tilt \\
-        --real-seeds 0-2 --doc docs/vessel_segmentation_table.md --json docs/vessel_segmentation.json
+        --real-seeds 0-2 --doc experiments/vessel_mask/vessel_segmentation_table.md --json experiments/vessel_mask/vessel_segmentation.json
 """
 
 from __future__ import annotations

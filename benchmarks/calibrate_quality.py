@@ -26,7 +26,8 @@ from geopose.bench.cases import ge_head_case, headsq_case, phantom_case, seed_ra
 from geopose.nets.predictors import load_models  # noqa: E402
 from geopose.register.biplane import nominal_poses  # noqa: E402
 from geopose.register.evaluate import evaluate_pose  # noqa: E402
-from geopose.register.pipeline import register_case, stage_agreement  # noqa: E402
+from geopose.register.pipeline import register_case  # noqa: E402
+from geopose.register.trust import stage_agreement  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
 
 

@@ -54,11 +54,11 @@ NCC_EPS: Final = 1e-5
 # ------------------------------------------------------- DSA preprocessing
 MAP_CLIP_PERCENTILES: Final = (25.0, 75.0)
 #: Ours, not the paper's: the vessel image (bolus-weighted mean of the frames) keeps the percentiles (over the
-#: DSA cranium mask) between which the opacified vessels stand out of the noise (docs/objective.md).
+#: DSA cranium mask) between which the opacified vessels stand out of the noise (experiments/tto_objective/objective.md).
 VESSEL_CLIP_PERCENTILES: Final = (90.0, 99.9)
 #: Ours: the vessel image averages the frames weighted by the run's own bolus curve (a temporal matched
 #: filter, ``dsa.preprocess.bolus_weighted_mean``), the curve read from the pixels whose temporal mean is at
-#: or above this percentile over the DSA cranium mask (docs/objective_real_heads.md).
+#: or above this percentile over the DSA cranium mask (experiments/tto_objective/objective_real_heads.md).
 BOLUS_PIXEL_PERCENTILE: Final = 98.0
 BILATERAL_SPATIAL_SIGMA_PX: Final = 11.0
 BILATERAL_RANGE_SIGMA: Final = 11.0

@@ -153,7 +153,7 @@ class TTOSchedule(_Group):
     #: in-plane in one view and free: a prior on all three held the start's rotation error
     #: (docs/benchmark/bench.md, reading). The prior also holds the start's error about the common
     #: axis, which the objective does see over a few degrees; the common-axis search
-    #: (``axis_search_at``) corrects it (docs/tto_schedule.md).
+    #: (``axis_search_at``) corrects it (experiments/tto_schedule/tto_schedule.md).
     rotation_prior_per_rad2: float = setting(10.0, "weight (per rad^2) of the prior holding the turn about the common "
                                              "axis", bounds=(0.0, 1e6))
     finalists: int = setting(2, "starts that run on after the coarse steps", bounds=(1, 100))

@@ -144,7 +144,7 @@ def test_both_backends_give_the_same_registration_at_the_defaults(phantom_folder
     """torch and onnxruntime + numpy, every option at its default up to the TTO: the same views, the
     same accepted proposals, the same TTO start, and poses within 0.5 mm / 0.1 deg. The TTO itself
     runs through the torch kernel on either backend (it needs gradients), so from one start it is one
-    computation; how far its result moves with the start is measured in docs/tto_schedule.md."""
+    computation; how far its result moves with the start is measured in experiments/tto_schedule/tto_schedule.md."""
     case = phantom_case(5003, phantom_folder, spacing_mm=3.0)
     results = {
         backend: register_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels,

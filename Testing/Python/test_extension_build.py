@@ -97,11 +97,11 @@ def test_the_installed_tree_holds_the_module_library_and_resources_only(installe
     manifest = json.loads((modules / "Resources" / "Models" / "manifest.json").read_text())
     assert manifest and all((modules / "Resources" / "Models" / Path(f).name).is_file()
                             for f in {e["file"] for e in manifest.get("models", {}).values()} if manifest.get("models"))
-    # Nothing of Testing/ or benchmarks/: no file of theirs by name (unless the library has one of
-    # the same name, e.g. run.py) nor under their folder names.
-    outside = {p.name for top in ("Testing", "benchmarks") for p in (REPO / top).rglob("*") if p.is_file()}
+    # Nothing of Testing/, benchmarks/ or experiments/: no file of theirs by name (unless the library has
+    # one of the same name, e.g. run.py) nor under their folder names.
+    outside = {p.name for top in ("Testing", "benchmarks", "experiments") for p in (REPO / top).rglob("*") if p.is_file()}
     outside -= {Path(f).name for f in library | resources}
-    leaked = sorted(f for f in files if Path(f).name in outside or f.split("/")[0] in ("Testing", "benchmarks"))
+    leaked = sorted(f for f in files if Path(f).name in outside or f.split("/")[0] in ("Testing", "benchmarks", "experiments"))
     assert not leaked, leaked
     module = {str(p.relative_to(REPO / "GeoPoseModule")) for p in (REPO / "GeoPoseModule").rglob("*.py")}
     assert {"GeoPose.py", "GeoPoseLib/dependencies.py"} <= module <= files, sorted(module - files)

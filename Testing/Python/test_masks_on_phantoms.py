@@ -67,7 +67,7 @@ def test_dsa_cranium_mask_survives_dense_opacification(subject):
     """Every artery opacified with five times the phantom world's contrast (an AVM, a late arterial phase):
     the vessels take the top of the run's 8-bit range and the head's noise-drawn level a few grey levels.
     Otsu on the MAP alone then masked the vessel tree (Dice 0.03-0.05 with the truth on the benchmark's
-    dense phantoms, docs/cranium_masks.md); the mask must still be the head."""
+    dense phantoms, experiments/cranium_masks/cranium_masks.md); the mask must still be the head."""
     rng = np.random.default_rng(4)
     arch = dsa_renderer(subject, "arch")
 

@@ -230,7 +230,7 @@ def test_on_a_plain_real_head_the_tto_from_the_truth_stays_near_it(plain):
     default objective's optimum lies near the truth: 25 TTO steps from the true patient pose end within
     1 deg and 15 mm of source position in both views. (With the DSA mask that ignores the vessels,
     dsa.preprocess.dsa_cranium_mask, the DRR clipped like the MAP ends nearer on this head, 0.35 against
-    0.81 deg; it was 0.82 against 0.52 before: the silhouette model's choice, docs/silhouette.md, is
+    0.81 deg; it was 0.82 against 0.52 before: the silhouette model's choice, experiments/tto_objective/silhouette.md, is
     open again.)"""
     prep = prepare_case(plain.cta, plain.runs, cranium_mask=plain.cranium, segmentation=plain.vessels)
     renderer, rig = TorchRenderer(prep.volume), nominal_poses(plain.runs)

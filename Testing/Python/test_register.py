@@ -603,7 +603,7 @@ def test_the_opacified_vessels_read_near_the_truth_are_the_injected_ones(unilate
 def test_tto_from_the_truth_stays_with_the_opacified_vessels(unilateral_case):
     """The arteries a selective injection leaves empty pull the TTO off the truth when the vessel term
     compares all of the CTA's; after its coarse steps the TTO reads the opacified ones and keeps
-    those, and then ends nearer the truth (docs/objective.md)."""
+    those, and then ends nearer the truth (experiments/tto_objective/objective.md)."""
     truth, runs, prep, renderer = _prepared(unilateral_case)
     rig = nominal_poses(runs)
 

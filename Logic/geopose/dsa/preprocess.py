@@ -87,7 +87,7 @@ def dsa_cranium_mask(image: np.ndarray) -> np.ndarray:
     field is where the MAP is above its minimum (the shutters hold the minimum); the opacified
     vessels are removed by a grey-scale opening within that field with a disc of
     ``VESSEL_OPENING_FRACTION`` of the longer side (vessels are narrower than the disc, the head is
-    not; what is left is the head's noise-drawn level, docs/cranium_masks.md); Otsu threshold over
+    not; what is left is the head's noise-drawn level, experiments/cranium_masks/cranium_masks.md); Otsu threshold over
     the exposed field, the largest 8-connected component, holes filled; repeated back to the full
     matrix (the mask is resampled to the 256-px model geometry afterwards). Without the opening a
     densely opacified run's vessels take Otsu's bright class and the mask is the vessel tree.
@@ -278,8 +278,8 @@ def vessel_image(image: np.ndarray, mask: np.ndarray, source: Detector, target: 
     noise; above: a few saturated pixels), masked, resampled (anti-aliased), min-max. Subtraction
     noise has zero mean, so averaging over frames keeps the vessels and drops the noise-made head
     silhouette (and the bright skull base) that the MAP's maximum holds; this is what the TTO aligns
-    the CTA's vessels on (docs/objective.md). What noise is left moves the objective's optimum
-    (docs/objective_real_heads.md): weighting the frames by the bolus leaves less of it than the
+    the CTA's vessels on (experiments/tto_objective/objective.md). What noise is left moves the objective's optimum
+    (experiments/tto_objective/objective_real_heads.md): weighting the frames by the bolus leaves less of it than the
     plain mean."""
     inside = np.asarray(mask) > 0
     lo, hi = np.percentile(image[inside], C.VESSEL_CLIP_PERCENTILES)
@@ -308,7 +308,7 @@ def preprocess_dsa(
     and min-max, for the model geometry and for the TTO geometry (acquisition SDD,
     ``tto_px`` pixels along the longer side). ``invert`` as in :meth:`DSARun.attenuation`.
     ``model_clip_percentiles`` changes the clip of the networks' image only (the TTO
-    target keeps docs/conventions.md 5); see ``docs/init_depth.md``.
+    target keeps docs/conventions.md 5); see ``experiments/init_depth/init_depth.md``.
     """
     frames = run.attenuation(invert)
     image = temporal_map(frames)

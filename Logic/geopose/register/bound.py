@@ -1,7 +1,7 @@
 """The move a registration may make without vessel evidence (numpy).
 
 When the CTA shows no contrast-filled vessels, the objective rests on the head's silhouette
-alone, which is flat, or lowest, degrees from the truth on real heads (docs/silhouette.md), and
+alone, which is flat, or lowest, degrees from the truth on real heads (experiments/tto_objective/silhouette.md), and
 the networks' starts are far off on real anatomy. The result then starts from the acquisition's
 own geometry (the DICOM angles, patient pose ``X = I``) and its move from there is bounded: a
 larger turn of the patient pose, or a larger shift of its isocentre, is scaled back onto the

@@ -9,8 +9,8 @@ vessel term ``-NCC(MAP vessels, DRR vessel channel)`` weighted ``vessel_weight``
 (:class:`Objective`). The MAP's head silhouette is made by quantum noise, whose level grows
 like exp(attenuation / 2) through the whole head (face and neck included), so a linear DRR
 clipped like the MAP has its optimum 1-3 deg from the truth on heads without vessels; a model
-of that level fitted to the MAP lies nearer on most (docs/silhouette.md). The opacified vessels
-are sharp and sit where the CTA's vessels project (docs/objective.md). The
+of that level fitted to the MAP lies nearer on most (experiments/tto_objective/silhouette.md). The opacified vessels
+are sharp and sit where the CTA's vessels project (experiments/tto_objective/objective.md). The
 test-time optimisation minimises it (``tto.py``); its scores decide between candidate starts and
 TTO results and grade the final poses, on either engine.
 """
@@ -36,7 +36,7 @@ Array = Any
 
 #: The fitted silhouette (:func:`fit_like_target`) models the MAP's brightness as a + b u + c exp(k u), u the
 #: DRR over its 99.5th percentile inside the DSA mask: quantum noise (log domain) has an sd growing like
-#: exp(attenuation / 2), and the thickest head path attenuates about e^-4, so k = 2 (docs/silhouette.md).
+#: exp(attenuation / 2), and the thickest head path attenuates about e^-4, so k = 2 (experiments/tto_objective/silhouette.md).
 SILHOUETTE_NOISE_EXPONENT = 2.0
 SILHOUETTE_NORM_PERCENTILE = 99.5
 

@@ -5,7 +5,7 @@ for a selective injection). The vessel term compares the MAP's vessel image with
 vessel channel, so the arteries the run does not show pull the pose towards where they
 would overlap the opacified ones: with the vessel channel restricted to the injected
 arteries (the phantom's labels, an oracle) the TTO started at the true pose no longer
-moves (docs/objective.md). Without labels, each vessel voxel of the CTA is projected into
+moves (experiments/tto_objective/objective.md). Without labels, each vessel voxel of the CTA is projected into
 every view at a patient pose close to the truth and kept when every view's vessel image
 shows contrast where it lands (:func:`read_opacified`): a vessel the run does not fill lands
 on background in at least one of two orthogonal views, unless it overlaps a filled one in

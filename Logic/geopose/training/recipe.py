@@ -66,5 +66,5 @@ DSA_MASK_LEVEL: Final = (0.05, 0.2)
 DSA_SATURATION_QUANTILE: Final = (0.8, 0.995)
 DSA_LOOK_P: Final = 0.5
 #: Input clip of the networks trained here (recorded in the model file and the manifest):
-#: mild, so the MAP's inner structure survives (docs/init_depth.md).
+#: mild, so the MAP's inner structure survives (experiments/init_depth/init_depth.md).
 INPUT_CLIP_PERCENTILES: Final = (2.0, 98.0)

@@ -12,8 +12,8 @@ A target that leaves the TTO at the truth holds no bias; the change the swap mak
 image whose texture moves the optimum. ``--no-motion`` simulates the runs without patient
 motion (no subtraction residue), ``--no-noise`` without quantum noise, to test either as the cause.
 
-    .venv/bin/python benchmarks/bench_objective_real.py --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
-        --ge-head ../shared/data/ge_head_ct_tilt --seeds 0-2 --doc docs/objective_real_heads.md
+    .venv/bin/python experiments/tto_objective/bench_objective_real.py --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
+        --ge-head ../shared/data/ge_head_ct_tilt --seeds 0-2 --doc experiments/tto_objective/objective_real_heads.md
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Logic"))
 
 import geopose.phantom.dsa as phantom_dsa  # noqa: E402
 from geopose import contract as C  # noqa: E402
@@ -37,7 +37,7 @@ from geopose.register.case import VIEW_KEYS, prepare_case  # noqa: E402
 from geopose.register.evaluate import evaluate_pose  # noqa: E402
 from geopose.register.objective import clip_like_target  # noqa: E402
 from geopose.register.opacified import read_opacified  # noqa: E402
-from geopose.register.pipeline import tto_views  # noqa: E402
+from geopose.register.tto import tto_views  # noqa: E402
 from geopose.register.tto import TTOSchedule, TTOView, test_time_optimise  # noqa: E402
 from geopose.render.renderer import TorchRenderer  # noqa: E402
 
@@ -135,7 +135,7 @@ def main() -> int:
     table = "\n".join(lines)
     print(table)
     if args.doc:
-        command = (f"python benchmarks/bench_objective_real.py --headsq {args.headsq} --ge-head {args.ge_head} "
+        command = (f"python experiments/tto_objective/bench_objective_real.py --headsq {args.headsq} --ge-head {args.ge_head} "
                    f"--seeds {args.seeds[0]}-{args.seeds[-1]}{' --no-motion' if args.no_motion else ''}"
                    f"{' --no-noise' if args.no_noise else ''}")
         args.doc.write_text(f"# Where the objective's optimum lies on real heads\n\n{command}\n\n{table}\n")

@@ -1,11 +1,11 @@
-"""Densely opacified phantom cases for the cranium-mask benchmark (docs/cranium_masks.md), made
+"""Densely opacified phantom cases for the cranium-mask benchmark (experiments/cranium_masks/cranium_masks.md), made
 with the existing simulator until the phantom world has its own dense injections: every artery
 label opacified (the ``arch`` injection) with ``DENSE_VESSEL_GAIN`` times the world's contrast, and
 an AVM-like nidus (a sphere of opacified intracranial artery label, also in the CTA). The vessels
 then take the top of each run's 8-bit range and the head's noise-drawn level drops to a few grey
 levels, as in an AVM, a late arterial phase or a bilateral injection.
 
-    python benchmarks/dense_runs.py --seeds 5000-5004 --out /tmp/dense   # one folder per seed, as `geopose phantom`
+    python experiments/cranium_masks/dense_runs.py --seeds 5000-5004 --out /tmp/dense   # one folder per seed, as `geopose phantom`
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Logic"))
 
 from geopose.bench.cases import seed_range  # noqa: E402
 from geopose.dsa import write_dsa_dicom  # noqa: E402

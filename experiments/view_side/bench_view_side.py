@@ -4,7 +4,7 @@ lateral runs: the published single-image rule against the mirror-averaged logits
 read back, as in ``geopose bench``; the true side comes from the run's primary angle.
 Prints a Markdown table; ``--doc`` writes it.
 
-    .venv/bin/python benchmarks/bench_view_side.py --seeds 5000-5039 6000-6029 --doc docs/view_side.md
+    .venv/bin/python experiments/view_side/bench_view_side.py --seeds 5000-5039 6000-6029 --doc experiments/view_side/view_side.md
 """
 
 from __future__ import annotations
@@ -18,13 +18,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from heldout import parse_heldout_args, publish  # puts Logic/ on sys.path
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: heldout.py
+from heldout import parse_heldout_args, publish  # noqa: E402  (puts Logic/ on sys.path)
 
 from geopose import contract as C  # noqa: E402
 from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.nets import load_models  # noqa: E402
 from geopose.dsa import preprocess_dsa  # noqa: E402
-from geopose.register.case import TTO_PX_CPU  # noqa: E402
+from geopose.options import TTO_PX_CPU  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
 
 
@@ -74,7 +75,7 @@ def main() -> int:
         *rows,
     ]
     publish("\n".join(lines), args.doc, "Lateral side: single image vs mirror-averaged logits",
-            "`benchmarks/bench_view_side.py`; the rule is described in the README (Python section).")
+            "`experiments/view_side/bench_view_side.py`; the rule is described in the README (How it registers).")
     return 0
 
 

@@ -4,7 +4,7 @@ other five parameters (the turn held by a stiff prior) and reports the objective
 that prior) at its result; a profile whose minimum sits at 0 says the objective sees that
 turn. Also the carotid mPCD (mm at the detector) the turn leaves.
 
-    .venv/bin/python benchmarks/bench_common_axis.py --seeds 6000-6005 --doc docs/common_axis_profile.md
+    .venv/bin/python experiments/tto_schedule/bench_common_axis.py --seeds 6000-6005 --doc experiments/tto_schedule/common_axis_profile.md
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: heldout.py
 from heldout import parse_heldout_args, publish  # noqa: E402
 
 from geopose.bench.cases import phantom_case  # noqa: E402
@@ -23,7 +23,7 @@ from geopose.register.biplane import common_axis, nominal_poses, patient_pose, t
 from geopose.register.case import VIEW_KEYS, prepare_case  # noqa: E402
 from geopose.register.evaluate import carotid_mpcd  # noqa: E402
 from geopose.register.objective import objective_value  # noqa: E402
-from geopose.register.pipeline import tto_views  # noqa: E402
+from geopose.register.tto import tto_views  # noqa: E402
 from geopose.register.tto import TTOSchedule, test_time_optimise  # noqa: E402
 from geopose.render.renderer import TorchRenderer  # noqa: E402
 
@@ -63,7 +63,7 @@ def main() -> int:
         lines.append(f"| {seed} | " + " | ".join(f"{loss:.3f} ({m:.1f})" for loss, m in cells) + f" | {best:+d} deg |")
         print(lines[-1], file=sys.stderr, flush=True)
     publish("\n".join(lines), args.doc, "The objective along the turn about the biplane common axis",
-            f"python benchmarks/bench_common_axis.py --seeds {seeds[0]}-{seeds[-1]} --spacing-mm {args.spacing_mm:g} "
+            f"python experiments/tto_schedule/bench_common_axis.py --seeds {seeds[0]}-{seeds[-1]} --spacing-mm {args.spacing_mm:g} "
             f"--doc {args.doc}")
     return 0
 

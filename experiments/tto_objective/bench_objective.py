@@ -8,7 +8,7 @@ against the DRR's vessel channel) at several weights; per view (the paper's sche
 one patient pose for both views; plus the start from a perturbation (about 5 deg / 10 mm)
 to show the reach.
 
-    .venv/bin/python benchmarks/bench_objective.py --seeds 5000-5004 --doc docs/objective.md
+    .venv/bin/python experiments/tto_objective/bench_objective.py --seeds 5000-5004 --doc experiments/tto_objective/objective.md
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: heldout.py
 from heldout import parse_heldout_args, publish  # noqa: E402
 
 from geopose.bench.cases import phantom_case  # noqa: E402
@@ -30,7 +30,7 @@ from geopose.geometry.poses import pose_from_params  # noqa: E402
 from geopose.register.biplane import nominal_poses  # noqa: E402
 from geopose.register.case import VIEW_KEYS, prepare_case  # noqa: E402
 from geopose.register.evaluate import carotid_mpcd  # noqa: E402
-from geopose.register.pipeline import tto_views  # noqa: E402
+from geopose.register.tto import tto_views  # noqa: E402
 from geopose.register.objective import PAPER_OBJECTIVE, Objective  # noqa: E402
 from geopose.register.tto import PAPER_SCHEDULE, TTOSchedule, test_time_optimise  # noqa: E402
 from geopose.render.renderer import TorchRenderer  # noqa: E402
@@ -79,7 +79,7 @@ are filled branches outside the DSA's cranium mask (the external carotid's); on 
 subjects the drift fell from 0.79 to 0.40 mm (`docs/benchmark/bench.md`).
 Registering the views one by one (paper schedule) with the
 same objective drifts further than one patient pose: each view's depth is free to wander.
-The one-patient-pose rows run the TTO's common-axis search (docs/tto_schedule.md): it finds the
+The one-patient-pose rows run the TTO's common-axis search (experiments/tto_schedule/tto_schedule.md): it finds the
 objective's own minimum along the turn both views see worst, which the rotation prior had held
 at the start. Since that search moves along the valley (the turn with the compensating shift
 and tilt) and runs four times instead of twice, it finds that minimum more surely, also where it
@@ -105,7 +105,7 @@ injection does not fill. The errors left on validation are starts the 25 steps d
 (6005, 6006), not the objective's optimum.
 On real head CTs the optimum lay farther from the truth (0.6-2.6 deg), moved by the runs' quantum
 noise; since 2026-12-03 the vessel image weights the frames by the run's bolus, which leaves less
-of it (0.0-0.8 deg there, 0.31 mm on the 40 benchmark subjects; docs/objective_real_heads.md). The
+of it (0.0-0.8 deg there, 0.31 mm on the 40 benchmark subjects; experiments/tto_objective/objective_real_heads.md). The
 table above is measured with it (the default row 0.23 -> 0.05 mm, from the perturbation 0.59 -> 0.45
 mm); the numbers quoted earlier in this reading were measured with the plain temporal mean.
 """
@@ -177,7 +177,7 @@ def main() -> int:
         a = np.asarray(rows)
         lines.append(f"| {name} | {a[:, 0].mean():.2f} | {a[:, 1].mean():.2f} | {a.mean():.2f} | {a.max():.2f} |")
     lines += ["", READING.strip()]
-    publish("\n".join(lines), args.doc, "Where the TTO objective's optimum lies", f"python benchmarks/bench_objective.py "
+    publish("\n".join(lines), args.doc, "Where the TTO objective's optimum lies", f"python experiments/tto_objective/bench_objective.py "
             f"--seeds {seeds[0]}-{seeds[-1]} --spacing-mm {args.spacing_mm:g} --doc {args.doc}")
     return 0
 

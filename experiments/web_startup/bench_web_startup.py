@@ -3,9 +3,9 @@ in Chromium (Debian's, driven by Playwright), with the server's own CPU time at 
 
 On a shared machine the wall time grows with the other processes' load; the server's CPU seconds
 are what an idle machine would wait for its part (the page itself loads in about a second).
-Writes a table to ``docs/web_startup.md``::
+Writes a table to ``experiments/web_startup/web_startup.md``::
 
-    python benchmarks/bench_web_startup.py --runs 5 --doc docs/web_startup.md
+    python experiments/web_startup/bench_web_startup.py --runs 5 --doc experiments/web_startup/web_startup.md
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         "# `geopose view`: time to interactive",
         "",
-        f"`python benchmarks/bench_web_startup.py --runs {args.runs}` on {platform.node()} ({os.cpu_count()} CPUs), "
+        f"`python experiments/web_startup/bench_web_startup.py --runs {args.runs}` on {platform.node()} ({os.cpu_count()} CPUs), "
         f"{time.strftime('%Y-%m-%d')}: launch of `geopose view` to an enabled Register button in headless Chromium; "
         "CPU = the server process's user + system seconds at that moment; 3D view = until the 3D view is in the page "
         "(Slicer's MRML is imported after the server listens); load = the machine's 1-minute load average at launch "

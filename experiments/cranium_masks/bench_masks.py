@@ -1,10 +1,10 @@
 """The two cranium masks the silhouette term compares, computed the user's way, against the
-simulator's truth (docs/cranium_masks.md): the DSA cranium mask of each run (before: Otsu on the
+simulator's truth (experiments/cranium_masks/cranium_masks.md): the DSA cranium mask of each run (before: Otsu on the
 MAP; after: the library's ``dsa_cranium_mask``) and the CTA cranium mask projected at the true pose,
 on plain and densely opacified phantoms (``dense_runs.py``) and real head CTs with simulated runs.
 
-    .venv/bin/python benchmarks/bench_masks.py --seeds 5000-5007 --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
-        --ge-head ../shared/data/ge_head_ct_tilt --real-seeds 0-1 --threads 1 --doc docs/cranium_masks_table.md
+    .venv/bin/python experiments/cranium_masks/bench_masks.py --seeds 5000-5007 --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
+        --ge-head ../shared/data/ge_head_ct_tilt --real-seeds 0-1 --threads 1 --doc experiments/cranium_masks/cranium_masks_table.md
 
 Phantoms at 2 mm (``--spacing-mm``), runs at 512 px; about 1.5 min per phantom pair and 1 min per
 real-head case on 2 cores.
@@ -147,7 +147,7 @@ def main() -> int:
     lines = table(rows)
     print("\n".join(lines))
     if args.doc:
-        args.doc.write_text("python benchmarks/bench_masks.py " + " ".join(sys.argv[1:]) + "\n\nPer case: PA / LAT.\n\n"
+        args.doc.write_text("python experiments/cranium_masks/bench_masks.py " + " ".join(sys.argv[1:]) + "\n\nPer case: PA / LAT.\n\n"
                             + "\n".join(lines) + "\n")
     return 0
 

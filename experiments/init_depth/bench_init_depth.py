@@ -8,7 +8,7 @@ The columns separate geometry from appearance and name the preprocessing step th
 network was not trained for. Held-out phantoms are written as DICOM/NIfTI and read back,
 as in ``geopose bench``. Prints a Markdown table; ``--doc`` writes it.
 
-    .venv/bin/python benchmarks/bench_init_depth.py --seeds 5000-5019 --doc docs/init_depth.md
+    .venv/bin/python experiments/init_depth/bench_init_depth.py --seeds 5000-5019 --doc experiments/init_depth/init_depth.md
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from heldout import parse_heldout_args, publish  # puts Logic/ on sys.path
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: heldout.py
+from heldout import parse_heldout_args, publish  # noqa: E402  (puts Logic/ on sys.path)
 
 from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.dsa.preprocess import bilateral, clip_intensities, minmax, preprocess_dsa  # noqa: E402
@@ -30,7 +31,8 @@ from geopose.nets import load_models  # noqa: E402
 from geopose.register import prepare_case  # noqa: E402
 from geopose.render.renderer import NumpyRenderer  # noqa: E402
 from geopose.register.calibration import calibrate, calibrated_init, render_model_view  # noqa: E402
-from geopose.register.case import TTO_PX_CPU, VIEW_KEYS  # noqa: E402
+from geopose.options import TTO_PX_CPU  # noqa: E402
+from geopose.register.case import VIEW_KEYS  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
 
 #: Index of the depth component in the pose translation ``t`` (docs/conventions.md 2: isopose t = (0, 650, 0)).
@@ -108,7 +110,7 @@ def main() -> int:
         *rows,
     ]
     publish("\n".join(lines), args.doc, "Init depth: simulated DSA MAP vs DRR, and which preprocessing step makes the difference",
-            "`benchmarks/bench_init_depth.py`; what the numbers mean is in `docs/benchmark/bench.md` (Reading these numbers).")
+            "`experiments/init_depth/bench_init_depth.py`; what the numbers mean is in `docs/benchmark/bench.md` (Reading these numbers).")
     return 0
 
 

@@ -9,8 +9,8 @@ CTs with simulated runs and of held-out phantoms, with
 
 A column that leaves the TTO at the truth has its optimum there.
 
-    .venv/bin/python benchmarks/bench_silhouette.py --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
-        --ge-head ../shared/data/ge_head_ct_tilt --real-seeds 0-2 --seeds 5000-5005 --doc docs/silhouette.md
+    .venv/bin/python experiments/tto_objective/bench_silhouette.py --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
+        --ge-head ../shared/data/ge_head_ct_tilt --real-seeds 0-2 --seeds 5000-5005 --doc experiments/tto_objective/silhouette.md
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: heldout.py
 from bench_objective_real import case_errors  # noqa: E402
 from heldout import case_groups, case_table, publish, run_cases  # noqa: E402
 
@@ -28,7 +29,7 @@ from geopose.bench.cases import BenchCase  # noqa: E402
 from geopose.register.biplane import nominal_poses  # noqa: E402
 from geopose.register.case import prepare_case  # noqa: E402
 from geopose.register.objective import Objective  # noqa: E402
-from geopose.register.pipeline import tto_views  # noqa: E402
+from geopose.register.tto import tto_views  # noqa: E402
 from geopose.register.tto import test_time_optimise  # noqa: E402
 from geopose.render.renderer import TorchRenderer  # noqa: E402
 
@@ -54,7 +55,7 @@ def main() -> int:
     lines += [f"| **{name}: mean rotation / worst source** | " + " | ".join(
         f"{np.mean([cells[i][0] for cells in picked]):.2f} / {max(cells[i][1] for cells in picked):.1f}"
         for i in range(len(MODELS))) + " |" for name, picked in case_groups(rows).items()]
-    intro = ("python benchmarks/bench_silhouette.py " + " ".join(sys.argv[1:]) + "\n\n"
+    intro = ("python experiments/tto_objective/bench_silhouette.py " + " ".join(sys.argv[1:]) + "\n\n"
              "TTO (25 steps, one patient pose) started at the true pose, with each silhouette model. Per cell: the "
              "worst view's rotation error (deg) / source-position error (mm) [/ mean carotid mPCD (mm), cases with "
              "arteries]; 0 / 0: the optimum is at the truth.")

@@ -5,7 +5,7 @@ detector) and the share of views under 5 mm, and how far apart two runs end that
 0.01 mm apart (a schedule whose result depends on such a difference is not reproducible
 across engines).
 
-    .venv/bin/python benchmarks/bench_schedule.py --seeds 5000-5005 --doc docs/tto_schedule.md
+    .venv/bin/python experiments/tto_schedule/bench_schedule.py --seeds 5000-5005 --doc experiments/tto_schedule/tto_schedule.md
 """
 
 from __future__ import annotations
@@ -18,18 +18,19 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: heldout.py
 from heldout import parse_heldout_args, publish  # noqa: E402
 
 from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.geometry.poses import rotation_angle_rad  # noqa: E402
-from geopose.options import RegistrationOptions  # noqa: E402
+from geopose.options import RegistrationOptions, TTOSchedule  # noqa: E402
 from geopose.register import register_case  # noqa: E402
 from geopose.register.biplane import view_poses  # noqa: E402
 from geopose.register.case import VIEW_KEYS  # noqa: E402
 from geopose.register.evaluate import carotid_mpcd  # noqa: E402
-from geopose.register.pipeline import torch_renderer_for, tto_views  # noqa: E402
-from geopose.register.tto import TTOSchedule, test_time_optimise  # noqa: E402
+from geopose.register.engine import torch_renderer_for  # noqa: E402
+from geopose.register.tto import tto_views  # noqa: E402
+from geopose.register.tto import test_time_optimise  # noqa: E402
 
 SCHEDULES = {
     "default: 60 % at half size, peak 0.02 rad / 4 mm, common-axis search after 60 and 80 %": TTOSchedule(),
@@ -54,7 +55,7 @@ def main() -> int:
         with tempfile.TemporaryDirectory() as tmp:
             case = phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm)
         reg = register_case(case.cta, case.runs, cranium_mask=case.cranium, segmentation=case.vessels,
-                            options=RegistrationOptions(iterations=0))
+                            options=RegistrationOptions(tto=TTOSchedule(iterations=0)))
         rig, X0 = reg.registration.rig, reg.registration.patient_pose
         starts.append(reg.registration.chosen_start)
         renderer = torch_renderer_for(reg.renderer)
@@ -90,7 +91,7 @@ def main() -> int:
         lines.append(f"| {name} | {m.mean():.2f} | {np.median(m):.2f} | {100 * (m < 5).mean():.0f} % | "
                      f"{np.mean(rotation[name]):.2f} | {s.mean():.2f} | {s.max():.2f} |")
     publish("\n".join(lines), args.doc, "Reach and stability of the TTO schedule",
-            f"python benchmarks/bench_schedule.py --seeds {seeds[0]}-{seeds[-1]} --spacing-mm {args.spacing_mm:g} --doc {args.doc}")
+            f"python experiments/tto_schedule/bench_schedule.py --seeds {seeds[0]}-{seeds[-1]} --spacing-mm {args.spacing_mm:g} --doc {args.doc}")
     return 0
 
 

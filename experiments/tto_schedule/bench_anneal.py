@@ -4,8 +4,8 @@
 An anneal to ~0 (PyTorch's default, 1 / 250000) leaves the last full-size steps too little reach;
 one that stays high leaves the result jittering about the optimum.
 
-    .venv/bin/python benchmarks/bench_anneal.py --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
-        --ge-head ../shared/data/ge_head_ct_tilt --real-seeds 0-2 --seeds 5030-5031 5000-5005 --doc docs/tto_anneal.md
+    .venv/bin/python experiments/tto_schedule/bench_anneal.py --headsq ../shared/data/headsq/quarter_sidecar.mhd \\
+        --ge-head ../shared/data/ge_head_ct_tilt --real-seeds 0-2 --seeds 5030-5031 5000-5005 --doc experiments/tto_schedule/tto_anneal.md
 """
 
 from __future__ import annotations
@@ -17,17 +17,17 @@ from unittest import mock
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tto_objective"))  # bench_objective_real.py
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: heldout.py
 from bench_objective_real import case_errors  # noqa: E402
 from heldout import case_groups, case_table, publish, run_cases  # noqa: E402
 
-from geopose import contract as C  # noqa: E402
 from geopose.bench.cases import BenchCase  # noqa: E402
 from geopose.register import pipeline  # noqa: E402
 from geopose.register.case import VIEW_KEYS  # noqa: E402
-from geopose.register.tto import TTOSchedule  # noqa: E402
+from geopose.register.tto import PAPER_SCHEDULE, TTOSchedule  # noqa: E402
 
-FLOORS = (C.PAPER_TTO_FINAL_LR_FRACTION, 0.05, C.TTO_FINAL_LR_FRACTION, 0.25)
+FLOORS = (PAPER_SCHEDULE.final_lr_fraction, 0.05, TTOSchedule.final_lr_fraction, 0.25)
 
 
 def _register(case: BenchCase, floor: float) -> tuple[float, float, float | None]:
@@ -56,7 +56,7 @@ def main() -> int:
         else:
             lines.append(summary(f"{name}: worst source (mm), mean rotation (deg)", picked,
                                  lambda c: f"{max(x[1] for x in c):.1f}, {np.mean([x[0] for x in c]):.2f}"))
-    intro = ("python benchmarks/bench_anneal.py " + " ".join(sys.argv[1:]) + "\n\n"
+    intro = ("python experiments/tto_schedule/bench_anneal.py " + " ".join(sys.argv[1:]) + "\n\n"
              "The default registration (every start, the tournament, 25 TTO steps) with the OneCycle of the patient "
              "pose's TTO annealing to a share of its peak learning rate. Per cell: the worst view's rotation error (deg) "
              "/ source-position error (mm) [/ mean carotid mPCD (mm), cases with arteries].")
