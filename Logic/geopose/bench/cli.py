@@ -78,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     backend, device, models = resolve_engine(options, models_dir, allow_unverified=args.allow_unverified_models)
     settings = BenchSettings(options, args.long_iterations)
+    n = options.tto.iterations
     n_long = args.subjects if args.long_subjects is None else args.long_subjects
     cases: list[dict] = []
     t_start = time.perf_counter()
@@ -91,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
             )
             cases.append(result)
             elapsed = time.perf_counter() - t_start
-            row = LEARNED_ROW.format(n=args.iterations) if args.iterations > 0 else INSTANT_ROW
+            row = LEARNED_ROW.format(n=n) if n > 0 else INSTANT_ROW
             mpcd = [result["rows"][row][v].get("mpcd_mm") for v in ("pa", "lat")]
             print(f"[{i + 1}/{len(seeds)}] {tag}: {row} mPCD PA {mpcd[0]:.2f} / LAT {mpcd[1]:.2f} mm; "
                   f"elapsed {elapsed / 60:.1f} min", flush=True)
@@ -111,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
                     real.append(_load_or_run(out / "cases" / f"{tag}.json", lambda: evaluate_case(
                         make(source, seed, arteries=arteries), models, settings, long=False)))
                     print(f"real head {tag} done; elapsed {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
-    summary = summarise(cases, args.iterations)
+    summary = summarise(cases, n)
     case_devices = sorted({str(c.get("device", device)) for c in cases + dense + real})
     ran_on = "" if case_devices == [str(device)] else f"; the cases (resumed from {out / 'cases'}) ran on {', '.join(case_devices)}"
     long_note = f"long native TTO on {min(n_long, len(cases))} subjects" if args.long_iterations > 0 else "no long native TTO"
@@ -128,10 +129,9 @@ def run(args: argparse.Namespace) -> int:
         f"{' --real-arteries' if args.real_arteries else ''}"
         f"{' --dense ' + ' '.join(args.dense) + f' --dense-subjects {args.dense_subjects}' if args.dense else ''}`"
     )
-    (out / "bench.md").write_text(markdown(summary, header, real, args.iterations, dense))
+    (out / "bench.md").write_text(markdown(summary, header, real, n, dense))
     (out / "bench.json").write_text(json.dumps({"summary": summary, "cases": cases, "real_heads": real, "dense": dense},
                                                indent=1))
-    n = args.iterations
     curve_rows = [r for r in row_names(settings) if r in (LEARNED_ROW.format(n=n), NATIVE_TTO_ROW.format(n=n), DRIFT_ROW.format(n=n))
                   or r.startswith("DICOM angles + ") and r != NATIVE_TTO_ROW.format(n=n)]
     convergence_figure(cases, curve_rows, out / "tto_convergence.png")
