@@ -90,6 +90,13 @@ def test_the_torch_floor_is_the_makefiles_pinned_release():
     assert D.split_requirement(next(r for r in D.read_requirements("torch") if r.startswith("torch")))[1] == floor
 
 
+def test_the_module_and_the_python39_environment_state_no_requirement_of_their_own():
+    """GeoPose.py names no version floor (it uses geopose.dependencies); Python 3.9's environment includes slicer.txt."""
+    module = (REPO / "GeoPoseModule" / "GeoPose.py").read_text()
+    assert not re.search(r"""["'][A-Za-z-]+\s*>=\s*\d""", module) and "2.13" not in module
+    assert "-r ../../Logic/geopose/requirements/slicer.txt" in (REPO / "Testing" / "Python39" / "requirements.txt").read_text()
+
+
 def test_unmet_and_too_old_compare_releases():
     installed = {"pydicom": "2.4.4", "pillow": "10.1.0", "torch": "2.13.0+cu126"}
     assert D.unmet(["pydicom>=2.4", "Pillow>=10", "SimpleITK>=2.3"], installed) == ["SimpleITK>=2.3"]
