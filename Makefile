@@ -12,7 +12,10 @@ PY39 ?= $(firstword $(wildcard $(shell pyenv root 2>/dev/null)/versions/3.9*/bin
 VENV39 := .venv-py39
 VENV39_SLICER := .venv-py39-slicer58
 
-$(BIN)/geopose: pyproject.toml
+# Requirements: Logic/geopose/requirements/ (pyproject.toml reads them). The exact torch==2.13.0 installed first is
+# this set-up's PyTorch, the release of the torch floor there (torch.txt >=2.13; Testing/Python/test_dependencies.py
+# checks they agree).
+$(BIN)/geopose: pyproject.toml $(wildcard Logic/geopose/requirements/*.txt)
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
@@ -30,7 +33,7 @@ chromium:
 	else echo "no chromium and not root with apt: the browser test will be skipped"; fi
 
 # Built when a Python 3.9 is found; without one, test_python39 skips and says so.
-$(VENV39)/.installed: Testing/Python39/requirements.txt Testing/Python39/slicer58.txt
+$(VENV39)/.installed: Testing/Python39/requirements.txt Testing/Python39/slicer58.txt Logic/geopose/requirements/slicer.txt
 	@if command -v $(PY39) >/dev/null 2>&1; then \
 		$(PY39) -m venv $(VENV39) && $(VENV39)/bin/python -m pip install -q -r Testing/Python39/requirements.txt && touch $@; \
 	else echo "no Python 3.9 found: the Slicer 5.8 (Python 3.9) check will be skipped"; fi

@@ -224,7 +224,7 @@ def _purge() -> None:
     import slicer
 
     for name in list(sys.modules):
-        if name == "GeoPose" or any(name == m or name.startswith(m + ".") for m in _SLICER_LAYER):
+        if name in ("GeoPose", "GeoPoseTest") or any(name == m or name.startswith(m + ".") for m in _SLICER_LAYER):
             del sys.modules[name]
     for attr in ("ScriptedLoadableModule", "i18n", "parameterNodeWrapper", "packaging", *_APP_NAMES):
         if attr in vars(slicer):

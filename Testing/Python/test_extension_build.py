@@ -89,8 +89,10 @@ def test_the_installed_tree_holds_the_module_library_and_resources_only(installe
     configure, modules = installed
     files = {str(p.relative_to(modules)) for p in modules.rglob("*") if p.is_file()}
     assert "GeoPose.py" in files
-    library = {str(p.relative_to(REPO / "Logic")) for p in (REPO / "Logic" / "geopose").rglob("*.py")}
+    library = {str(p.relative_to(REPO / "Logic")) for p in (REPO / "Logic" / "geopose").rglob("*")
+               if p.is_file() and "__pycache__" not in p.parts}
     assert library <= files, sorted(library - files)[:5]
+    assert {"geopose/dependencies.py", "geopose/requirements/slicer.txt", "geopose/requirements/torch.txt"} <= library
     resources = {str(p.relative_to(REPO)) for p in (REPO / "Resources").rglob("*") if p.is_file()}
     assert resources <= files, sorted(resources - files)
     assert {"Resources/UI/GeoPose.ui", "Resources/Icons/GeoPose.png", "Resources/Models/manifest.json"} <= files
@@ -104,7 +106,7 @@ def test_the_installed_tree_holds_the_module_library_and_resources_only(installe
     leaked = sorted(f for f in files if Path(f).name in outside or f.split("/")[0] in ("Testing", "benchmarks", "experiments"))
     assert not leaked, leaked
     module = {str(p.relative_to(REPO / "GeoPoseModule")) for p in (REPO / "GeoPoseModule").rglob("*.py")}
-    assert {"GeoPose.py", "GeoPoseLib/dependencies.py"} <= module <= files, sorted(module - files)
+    assert {"GeoPose.py", "GeoPoseTest.py"} <= module <= files, sorted(module - files)
     extra = sorted(f for f in files if not f.endswith(".pyc") and f not in library | resources | module)
     assert not extra, extra
 
@@ -137,6 +139,9 @@ print(geopose.__file__)
 print(module.resourceFile("UI/GeoPose.ui"))
 print(parent.icon.path)
 print(module.GeoPoseLogic.defaultModelsFolder())
+print(sys.modules["GeoPoseTest"].__file__)
+print(module.dependencies.REQUIREMENTS_FOLDER / "slicer.txt")
+assert module.dependencies.SLICER_REQUIREMENTS and module.dependencies.TORCH_REQUIREMENT.startswith(">=")
 """)
     env = {"PYTHONPATH": str(REPO / "Testing" / "Python"), "PATH": "/usr/bin:/bin"}
     run = subprocess.run([sys.executable, str(probe)], capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)

@@ -4,6 +4,7 @@ segmentations, detector planes, DSA sequences, output nodes and .mrb round trips
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -247,3 +248,217 @@ def test_detector_image_model_puts_each_pixel_where_its_ray_meets_the_detector(s
     np.testing.assert_array_equal(pixels, to_uint8(image))  # texture (s, t) = (0, 0) is image row 0, column 0
     with pytest.raises(ValueError, match="does not match"):
         mrml.detector_image_model_node(scene, image[1:], DET, cta.centred_to_ras @ pose_c, "wrong")
+
+
+# ------------------------------------------------------------------ a registration's nodes (mrml.registration)
+RUN_DET = Detector(40, 48, (0.8, 0.8), 1000.0)
+
+
+def _run(primary: float):
+    """A DSA run of 3 frames on RUN_DET at the given primary angle (125 ms frame time)."""
+    from geopose.dsa import DSARun
+
+    rng = np.random.default_rng(int(abs(primary)))
+    angles = CArmAngles(primary, 3.0, RUN_DET.sdd_mm, 700.0)
+    return DSARun(rng.random((3, RUN_DET.rows, RUN_DET.cols), dtype=np.float32) * 100, RUN_DET, angles, 125.0)
+
+
+def _result(poses: dict) -> SimpleNamespace:
+    """A registration result with the fields mrml.result_rows / result_nodes read (each view's Init 5 mm off)."""
+    views = {}
+    for n, (key, pose) in enumerate(poses.items()):
+        shifted = pose.copy()
+        shifted[:3, 3] += [3.0, 4.0, 0.0]
+        views[key] = SimpleNamespace(
+            final_pose=pose, stage_poses={"init": shifted, "final": pose}, final_mncc=0.5 + 0.1 * n,
+            silhouette_dice=0.9, quality=SimpleNamespace(flag="ok" if n else "doubtful", reasons=() if n else ("low mNCC",)),
+            prepared=SimpleNamespace(map=np.full(RUN_DET.shape, 7.0 + n, np.float32)),
+        )
+    return SimpleNamespace(views=views, runtimes_s={"init": 0.02, "total": 1.5}, engine={"backend": "torch", "device": "cpu"},
+                           registration=SimpleNamespace(mode="biplane-rigid", refine_start="rotation fused, isocentre PA",
+                                                        chosen_start="Refine"),
+                           notes=["the TTO was skipped", "no cranium mask"])
+
+
+def test_result_rows_hold_each_views_numbers():
+    poses = {"pa": _pose(C.VIEW_PA), "lat": _pose(C.VIEW_LAT_PLUS)}
+    rows = mrml.result_rows(_result(poses), {"pa": _run(0.0), "lat": _run(-90.0)})
+    assert list(rows[0]) == [
+        "view", "mNCC", "silhouette Dice", "quality", "reasons", "registration", "Refine start", "TTO start",
+        "pixel axes (registered)", "pixel axes (DICOM angles)", "init to final (mm)", "final to final (mm)",
+        "runtime init (s)", "runtime total (s)", "device", "notes"]
+    pa, lat = rows
+    assert (pa["view"], pa["mNCC"], pa["silhouette Dice"], pa["quality"], pa["reasons"]) == ("PA", 0.5, 0.9, "doubtful", "low mNCC")
+    assert (lat["view"], lat["mNCC"], lat["quality"], lat["reasons"]) == ("LAT", pytest.approx(0.6), "ok", "")
+    assert pa["init to final (mm)"] == pytest.approx(5.0) and pa["final to final (mm)"] == 0.0  # the 3-4-5 shift
+    assert (pa["runtime init (s)"], pa["runtime total (s)"], pa["device"]) == (0.02, 1.5, "torch on cpu")
+    assert pa["notes"] == lat["notes"] == "the TTO was skipped; no cranium mask"
+    assert (pa["registration"], pa["Refine start"], pa["TTO start"]) == ("biplane-rigid", "rotation fused, isocentre PA", "Refine")
+    # The pixel axes of the registered pose and of the run's angles (PA at primary 0: L\F; LAT at -90: A\F).
+    assert (pa["pixel axes (registered)"], pa["pixel axes (DICOM angles)"]) == ("L\\F", "L\\F")
+    assert lat["pixel axes (DICOM angles)"] == "A\\F"
+    assert all(isinstance(v, float) for row in rows for k, v in row.items() if "(mm)" in k or "(s)" in k or k == "mNCC")
+
+
+def test_result_nodes_place_every_output(scene):
+    cta, lab = _cta()
+    cta_node = mrml.volume_to_node(scene, cta, "CTA")
+    seg = mrml.segmentation_from_labelmap(scene, lab, {1: ("vessel", (1, 0, 0)), 2: ("blob", (0, 1, 0))}, "Vessels")
+    before = (mrml.volume_from_node(cta_node).array.copy(), mrml.labelmap_from_segmentation(seg, cta_node)[0].array.copy())
+    labels, segments = mrml.segmentation_labels(seg, cta_node)
+    assert segments == {1: ("vessel", (1.0, 0.0, 0.0)), 2: ("blob", (0.0, 1.0, 0.0))}
+    assert mrml.segmentation_labels(None, cta_node) == (None, {})
+    poses = {"pa": _pose(C.VIEW_PA), "lat": _pose(C.VIEW_LAT_PLUS)}
+    runs = {"pa": _run(0.0), "lat": _run(-90.0)}
+    result = _result(poses)
+    out = mrml.result_nodes(scene, mrml.RegistrationInputs(cta, runs, labels, segments), result)
+    assert set(out) == {f"{k}{s}" for k in ("pa", "lat") for s in mrml.OUTPUT_KEYS} | {"table"}
+    for key, title in (("pa", "PA"), ("lat", "LAT")):
+        pose_ras = cta.centred_to_ras @ poses[key]
+        assert out[f"{key}Pose"].GetName() == f"GeoPose {title} pose"
+        np.testing.assert_allclose(mrml.transform_matrix(out[f"{key}Pose"]), pose_ras, atol=1e-9)
+        plane = mrml.detector_ijk_to_ras(RUN_DET, pose_ras)
+        np.testing.assert_allclose(mrml.volume_from_node(out[f"{key}MAP"]).ijk_to_ras, plane, atol=1e-9)
+        np.testing.assert_array_equal(mrml.volume_from_node(out[f"{key}MAP"]).array[0], result.views[key].prepared.map)
+        assert mrml.geometry_from_attributes(out[f"{key}MAP"]) == (RUN_DET, runs[key].angles, 0.125)
+        seq = out[f"{key}DSA"]
+        np.testing.assert_array_equal(mrml.frames_from_sequence(seq), runs[key].frames)
+        np.testing.assert_allclose(mrml.volume_from_node(seq.GetNthDataNode(2)).ijk_to_ras, plane, atol=1e-9)
+        assert seq.GetNthIndexValue(1) == "0.125"  # 125 ms frame time, in s
+        assert out[f"{key}DSABrowser"].GetProxyNode(seq) is not None
+        proj_seg = out[f"{key}Projection"].GetSegmentation()
+        assert [proj_seg.GetSegment(s).GetName() for s in proj_seg.GetSegmentIDs()] == ["vessel", "blob"]
+        proj, names = mrml.labelmap_from_segmentation(out[f"{key}Projection"], out[f"{key}MAP"], ["vessel"])
+        want = mrml.project_labels(labels, [1], poses[key], RUN_DET)[0]
+        assert want.sum() > 10
+        np.testing.assert_array_equal(proj.array[0] == names["vessel"], want)
+        np.testing.assert_allclose(out[f"{key}Camera"].GetPosition(), pose_ras[:3, 3], atol=1e-9)
+    # The table node holds the rows of result_rows, numbers as numbers.
+    table, rows = out["table"], mrml.result_rows(result, runs)
+    cols = [table.GetColumnName(c) for c in range(table.GetNumberOfColumns())]
+    assert cols == list(rows[0]) and table.GetNumberOfRows() == 2
+    for r, row in enumerate(rows):
+        for c, name in enumerate(cols):
+            cell = table.GetCellText(r, c)
+            assert (float(cell) == pytest.approx(row[name])) if isinstance(row[name], float) else cell == row[name]
+    assert mrml.result_summary(table).splitlines() == ["PA: mNCC 0.500, doubtful", "LAT: mNCC 0.600, ok"]
+    # Again with these nodes: the same nodes, updated; no node added.
+    count = scene.GetNumberOfNodes()
+    again = mrml.result_nodes(scene, mrml.RegistrationInputs(cta, runs), result, outputs=out)
+    assert scene.GetNumberOfNodes() == count and all(again[k] is out[k] for k in again)
+    assert "paProjection" not in again  # no segmentation this time
+    # Inputs unchanged.
+    np.testing.assert_array_equal(mrml.volume_from_node(cta_node).array, before[0])
+    np.testing.assert_array_equal(mrml.labelmap_from_segmentation(seg, cta_node)[0].array, before[1])
+
+
+def test_a_pose_round_trips_through_its_transform_node(scene):
+    """camera-to-centred pose -> the transform node's camera-to-RAS matrix -> the same pose; the RAS pose is
+    the result record's (geometry.frames.pose_to_patient) and its LPS twin differs by RAS_TO_LPS."""
+    from geopose.geometry.frames import RAS_TO_LPS, pose_from_patient, pose_to_patient
+
+    cta, _ = _cta()
+    runs = {"pa": _run(0.0), "lat": _run(-90.0)}
+    poses = {"pa": _pose(C.VIEW_PA, dr=(0.1, -0.2, 0.05), dt=(12.0, -7.0, 30.0)), "lat": _pose(C.VIEW_LAT_MINUS)}
+    out = mrml.result_nodes(scene, mrml.RegistrationInputs(cta, runs), _result(poses))
+    for key, pose in poses.items():
+        matrix = mrml.transform_matrix(out[f"{key}Pose"])
+        np.testing.assert_allclose(pose_from_patient(matrix, cta.ijk_to_ras, cta.shape_ijk), pose, atol=1e-9)
+        np.testing.assert_allclose(matrix, pose_to_patient(pose, cta.ijk_to_ras, cta.shape_ijk), atol=1e-12)
+        np.testing.assert_allclose(RAS_TO_LPS @ matrix, pose_to_patient(pose, cta.ijk_to_ras, cta.shape_ijk, "LPS"), atol=1e-12)
+        # the translation is the X-ray source: the centred pose's source moved to the CTA's grid centre
+        np.testing.assert_allclose(matrix[:3, 3], pose[:3, 3] + cta.centred_to_ras[:3, 3], atol=1e-9)
+
+
+def test_plane_axes_of_known_planes(scene):
+    """The detector plane of the isocentric PA and LAT+ poses about the RAS origin (source 650 mm from the
+    isocentre, SDD 1000 mm): the normal points from the source to the detector, the column direction is where
+    the image's columns grow (PA: the patient's left, DICOM "L"; LAT+: posterior), the centre is 350 mm past
+    the isocentre."""
+    det = Detector(4, 6, (0.5, 0.5), 1000.0)
+    known = {C.VIEW_PA: ((0, -1, 0), (-1, 0, 0), (0, -350, 0)), C.VIEW_LAT_PLUS: ((1, 0, 0), (0, -1, 0), (350, 0, 0))}
+    for view, (normal, column, centre) in known.items():
+        pose = isopose(view)
+        node = mrml.plane_volume_node(scene, np.zeros(det.shape), det, pose, f"plane {view}")
+        got = mrml.plane_axes(node)
+        for g, w in zip(got, (normal, column, centre)):
+            np.testing.assert_allclose(g, w, atol=1e-9)
+        src, world = source_and_detector_points(pose, det)  # the same, from the projection geometry
+        beam = world.reshape(-1, 3).mean(0) - src
+        np.testing.assert_allclose(got[0], beam / np.linalg.norm(beam), atol=1e-9)
+        np.testing.assert_allclose(got[2], world.reshape(-1, 3).mean(0), atol=1e-9)
+    # an oblique pose about an oblique CTA: unit axes, the normal along the beam
+    cta, _ = _cta()
+    pose_c = _pose(C.VIEW_LAT_PLUS)
+    node = mrml.plane_volume_node(scene, np.zeros(DET.shape), DET, cta.centred_to_ras @ pose_c, "oblique")
+    normal, column, centre = mrml.plane_axes(node)
+    assert np.linalg.norm(normal) == pytest.approx(1) and np.linalg.norm(column) == pytest.approx(1)
+    assert abs(normal @ column) < 1e-9
+    src = (cta.centred_to_ras @ pose_c)[:3, 3]
+    assert (centre - src) @ normal == pytest.approx(DET.sdd_mm)  # the plane lies SDD from the source along the normal
+    np.testing.assert_allclose(centre, mrml.camera_to_ras_points(cta.centred_to_ras @ pose_c, DET)["centre"], atol=1e-9)
+
+
+def test_geometry_overrides_keep_the_files_values_for_zero():
+    fields = {"primary_deg": 0.0, "secondary_deg": -3.0, "sid_mm": 0.0, "sod_mm": 650.0, "pixel_spacing_mm": 0.0}
+    assert mrml.geometry_overrides(fields) == {"primary_deg": 0.0, "secondary_deg": -3.0, "sod_mm": 650.0}
+    assert mrml.geometry_overrides({**fields, "sid_mm": 1100.0, "pixel_spacing_mm": 0.3}) == {
+        "primary_deg": 0.0, "secondary_deg": -3.0, "sid_mm": 1100.0, "sod_mm": 650.0, "pixel_spacing_mm": (0.3, 0.3)}
+
+
+def test_run_from_node_uses_attributes_and_overrides_through_the_readers_checks(scene):
+    from geopose.errors import InputError
+
+    run = _run(-90.0)
+    seq, _ = mrml.dsa_sequence_node(scene, run.frames, run.detector, np.eye(4), "in", 0.125, run.angles)
+    back = mrml.run_from_node(seq)
+    np.testing.assert_array_equal(back.frames, run.frames)
+    assert back.detector == run.detector and back.angles == run.angles and back.frame_time_ms == 125.0
+    assert back.view_role == "LAT" and back.metadata["geometry_sources"]["sod_mm"] == "Slicer node in"
+    over = mrml.run_from_node(seq, {"primary_deg": 2.0, "sod_mm": 650.0})
+    assert over.angles.primary_deg == 2.0 and over.angles.sod_mm == 650.0 and over.view_role == "PA"
+    with pytest.raises(InputError, match="not shorter than the source-to-detector"):
+        mrml.run_from_node(seq, {"sod_mm": 1200.0})
+    bare = scene.AddNewNodeByClass("vtkMRMLSequenceNode", "bare")
+    for n in range(2):
+        f = slicer.vtkMRMLScalarVolumeNode()
+        f.SetAndObserveImageData(mrml.volumes.image_data_from_array(run.frames[n][None]))
+        bare.SetDataNodeAtValue(f, str(n))
+    with pytest.raises(InputError, match="missing in DSA node 'bare'"):
+        mrml.run_from_node(bare)
+    geo = {"primary_deg": 0.0, "secondary_deg": 0.0, "sid_mm": 1000.0, "sod_mm": 650.0, "pixel_spacing_mm": (0.8, 0.8)}
+    assert mrml.run_from_node(bare, geo).detector == RUN_DET
+
+
+def test_node_roles_and_read_inputs_checks(scene, tmp_path):
+    from geopose.dsa import write_dsa_nifti
+    from geopose.errors import InputError
+
+    cta, lab = _cta()
+    run = _run(0.0)
+    seq, browser = mrml.read_dsa_node(scene, write_dsa_nifti(run, tmp_path / "pa.nii.gz"), "DSA PA")
+    proxy = browser.GetProxyNode(seq)
+    plane = mrml.plane_volume_node(scene, run.frames[0], run.detector, np.eye(4), "a plane")
+    mrml.set_geometry_attributes(plane, run.detector, run.angles)
+    assert mrml.first_cta_candidate(scene) is None  # a shown frame and a detector plane are no CTA
+    cta_node = mrml.volume_to_node(scene, cta, "CTA")
+    mrml.volume_to_node(scene, cta, "second CTA")
+    assert mrml.first_cta_candidate(scene) is cta_node
+    assert (mrml.is_dsa_image(proxy), mrml.is_dsa_image(plane), mrml.is_dsa_image(cta_node)) == (True, True, False)
+    assert sorted(mrml.dsa_image_ids(scene)) == sorted([proxy.GetID(), plane.GetID()])
+    seg = mrml.segmentation_from_labelmap(scene, lab, {1: ("vessel", (1, 0, 0))}, "Vessels")
+    count = scene.GetNumberOfNodes()
+    with pytest.raises(InputError, match="select a CTA volume and a PA and a lateral DSA run"):
+        mrml.read_inputs(cta_node, seq, None)
+    with pytest.raises(InputError, match="output latMAP is the input node 'DSA PA'"):
+        mrml.read_inputs(cta_node, seq, seq, outputs={"latMAP": seq})
+    with pytest.raises(InputError, match="is a DSA image"):
+        mrml.read_inputs(proxy, seq, seq)
+    ticks = []
+    inputs = mrml.read_inputs(cta_node, seq, proxy, segmentation=seg, overrides={"lat": {"primary_deg": -90.0}},
+                              tick=lambda: ticks.append(1))
+    assert len(ticks) == 3 and scene.GetNumberOfNodes() == count
+    np.testing.assert_array_equal(inputs.cta.array, cta.array)
+    assert inputs.runs["pa"].angles == run.angles and inputs.runs["lat"].angles.primary_deg == -90.0
+    np.testing.assert_array_equal(inputs.labels.array, (lab.array == 1).astype(inputs.labels.array.dtype))
+    assert inputs.segments == {1: ("vessel", (1.0, 0.0, 0.0))} and inputs.cranium is None

@@ -15,11 +15,10 @@ slicer = pytest.importorskip("slicer", reason="needs the slicer-core wheel (Slic
 import slicer_harness as H  # noqa: E402
 from geopose import contract as C  # noqa: E402
 from geopose import mrml  # noqa: E402
-from geopose.dsa import DSARun  # noqa: E402
 from geopose.errors import InputError  # noqa: E402
-from geopose.options import RegistrationOptions, TTOSchedule  # noqa: E402
-from geopose.geometry import CArmAngles, Detector, pose_from_carm_angles  # noqa: E402
-from test_mrml_adapters import _cta, _pose  # noqa: E402
+from geopose.options import RefineOptions, RegistrationOptions, SearchOptions, TTOSchedule, setting_paths  # noqa: E402
+from geopose.geometry import pose_from_carm_angles  # noqa: E402
+from test_mrml_adapters import _cta, _pose, _result, _run  # noqa: E402
 
 @pytest.fixture()
 def module():
@@ -31,31 +30,6 @@ def module():
     H.unload()
 
 
-DET = Detector(40, 48, (0.8, 0.8), 1000.0)
-
-
-def _run(primary: float) -> DSARun:
-    rng = np.random.default_rng(int(abs(primary)))
-    angles = CArmAngles(primary, 3.0, DET.sdd_mm, 700.0)
-    return DSARun(rng.random((3, DET.rows, DET.cols), dtype=np.float32) * 100, DET, angles, 125.0)
-
-
-def _result(poses: dict[str, np.ndarray]) -> SimpleNamespace:
-    """A registration record with the fields GeoPoseLogic.addResultNodes reads."""
-    views = {}
-    for n, (key, pose) in enumerate(poses.items()):
-        shifted = pose.copy()
-        shifted[:3, 3] += [3.0, 4.0, 0.0]
-        views[key] = SimpleNamespace(
-            final_pose=pose, stage_poses={"init": shifted, "final": pose}, final_mncc=0.5 + 0.1 * n,
-            silhouette_dice=0.9, quality=SimpleNamespace(flag="ok" if n else "doubtful", reasons=() if n else ("low mNCC",)),
-            prepared=SimpleNamespace(map=np.full(DET.shape, 7.0 + n, np.float32)),
-        )
-    return SimpleNamespace(views=views, runtimes_s={"init": 0.02, "total": 1.5}, engine={"backend": "torch", "device": "cpu"},
-                           registration=SimpleNamespace(mode="biplane-rigid", refine_start="rotation fused, isocentre PA",
-                                                          chosen_start="Refine"))
-
-
 def test_module_metadata(module):
     parent = SimpleNamespace(path=str(H.MODULE_FILE))
     module.GeoPose(parent)
@@ -64,80 +38,28 @@ def test_module_metadata(module):
     assert "5.8 or later" in parent.helpText and parent.contributors == list(module.CONTRIBUTORS)
 
 
-def test_add_result_nodes_places_every_output(module):
-    scene = slicer.mrmlScene
-    cta, lab = _cta()
-    cta_node = mrml.volume_to_node(scene, cta, "CTA")
-    seg = mrml.segmentation_from_labelmap(scene, lab, {1: ("vessel", (1, 0, 0)), 2: ("blob", (0, 1, 0))}, "Vessels")
-    before = (mrml.volume_from_node(cta_node).array.copy(), mrml.labelmap_from_segmentation(seg, cta_node)[0].array.copy())
-    logic = module.GeoPoseLogic()
-    labels, segments = logic.segmentationLabels(seg, cta_node)
-    assert segments == {1: ("vessel", (1.0, 0.0, 0.0)), 2: ("blob", (0.0, 1.0, 0.0))}
-    poses = {"pa": _pose(C.VIEW_PA), "lat": _pose(C.VIEW_LAT_PLUS)}
-    runs = {"pa": _run(0.0), "lat": _run(-90.0)}
-    out = logic.addResultNodes(cta, runs, _result(poses), labels, segments)
-    for key, title in (("pa", "PA"), ("lat", "LAT")):
-        pose_ras = cta.centred_to_ras @ poses[key]
-        assert out[f"{key}Pose"].GetName() == f"GeoPose {title} pose"
-        np.testing.assert_allclose(mrml.transform_matrix(out[f"{key}Pose"]), pose_ras, atol=1e-9)
-        plane = mrml.detector_ijk_to_ras(DET, pose_ras)
-        np.testing.assert_allclose(mrml.volume_from_node(out[f"{key}MAP"]).ijk_to_ras, plane, atol=1e-9)
-        seq = out[f"{key}DSA"]
-        np.testing.assert_array_equal(mrml.frames_from_sequence(seq), runs[key].frames)
-        np.testing.assert_allclose(mrml.volume_from_node(seq.GetNthDataNode(2)).ijk_to_ras, plane, atol=1e-9)
-        assert seq.GetNthIndexValue(1) == "0.125"  # 125 ms frame time, in s
-        proj_seg = out[f"{key}Projection"].GetSegmentation()
-        assert [proj_seg.GetSegment(s).GetName() for s in proj_seg.GetSegmentIDs()] == ["vessel", "blob"]
-        proj, names = mrml.labelmap_from_segmentation(out[f"{key}Projection"], out[f"{key}MAP"], ["vessel"])
-        want = mrml.project_labels(labels, [1], poses[key], DET)[0]
-        assert want.sum() > 10
-        np.testing.assert_array_equal(proj.array[0] == names["vessel"], want)
-        np.testing.assert_allclose(out[f"{key}Camera"].GetPosition(), pose_ras[:3, 3], atol=1e-9)
-    table = out["table"]
-    cols = [table.GetColumnName(c) for c in range(table.GetNumberOfColumns())]
-    assert cols[:4] == ["view", "mNCC", "silhouette Dice", "quality"]
-    assert table.GetCellText(0, cols.index("quality")) == "doubtful"
-    assert float(table.GetCellText(1, cols.index("mNCC"))) == pytest.approx(0.6)
-    assert float(table.GetCellText(0, cols.index("init to final (mm)"))) == pytest.approx(5.0)
-    assert float(table.GetCellText(0, cols.index("runtime total (s)"))) == 1.5
-    assert table.GetCellText(0, cols.index("registration")) == "biplane-rigid"
-    assert table.GetCellText(1, cols.index("Refine start")) == "rotation fused, isocentre PA"
-    # The pixel axes of the registered pose and of the run's angles (PA at primary 0: L\F; LAT at -90: A\F).
-    assert table.GetCellText(0, cols.index("pixel axes (DICOM angles)")) == "L\\F"
-    assert table.GetCellText(1, cols.index("pixel axes (DICOM angles)")) == "A\\F"
-    assert table.GetCellText(0, cols.index("pixel axes (registered)")) == "L\\F"
-    assert logic.summary(out).splitlines() == ["PA: mNCC 0.500, doubtful", "LAT: mNCC 0.600, ok"]
-    # Inputs unchanged.
-    np.testing.assert_array_equal(mrml.volume_from_node(cta_node).array, before[0])
-    np.testing.assert_array_equal(mrml.labelmap_from_segmentation(seg, cta_node)[0].array, before[1])
-
-
-def test_dsa_run_from_node_uses_attributes_and_overrides(module):
+def test_summary_and_parameters_map_to_the_library(module):
+    """The logic's parameter-node mappings: options (every RegistrationOptions field the panel holds),
+    geometry overrides (geopose.mrml.geometry_overrides) and the summary of a results table."""
     scene = slicer.mrmlScene
     logic = module.GeoPoseLogic()
-    run = _run(-90.0)
-    seq, _ = mrml.dsa_sequence_node(scene, run.frames, run.detector, np.eye(4), "in", 0.125, run.angles)
-    back = logic.dsaRunFromNode(seq)
-    np.testing.assert_array_equal(back.frames, run.frames)
-    assert back.detector == run.detector and back.angles == run.angles and back.frame_time_ms == 125.0
-    assert back.view_role == "LAT"
-    over = logic.dsaRunFromNode(seq, {"primary_deg": 2.0, "sod_mm": 650.0})
-    assert over.angles.primary_deg == 2.0 and over.angles.sod_mm == 650.0 and over.view_role == "PA"
-    bare = scene.AddNewNodeByClass("vtkMRMLSequenceNode", "bare")
-    for n in range(2):
-        f = slicer.vtkMRMLScalarVolumeNode()
-        f.SetAndObserveImageData(mrml.volumes.image_data_from_array(run.frames[n][None]))
-        bare.SetDataNodeAtValue(f, str(n))
-    with pytest.raises(InputError, match="missing in DSA node 'bare'"):
-        logic.dsaRunFromNode(bare)
-    geo = {"primary_deg": 0.0, "secondary_deg": 0.0, "sid_mm": 1000.0, "sod_mm": 650.0, "pixel_spacing_mm": (0.8, 0.8)}
-    assert logic.dsaRunFromNode(bare, geo).detector == DET
     p = logic.getParameterNode()
     assert logic.overridesFromParameters(p, "pa") == {}
     p.overrideGeometry = True
     p.geometryLAT.primaryDeg, p.geometryLAT.sidMm, p.geometryLAT.pixelSpacingMm = -88.0, 1100.0, 0.3
     assert logic.overridesFromParameters(p, "lat") == {
         "primary_deg": -88.0, "secondary_deg": 0.0, "sid_mm": 1100.0, "pixel_spacing_mm": (0.3, 0.3)}
+    assert logic.overridesFromParameters(p, "pa") == {"primary_deg": 0.0, "secondary_deg": 0.0}
+    p.backend, p.refineSteps, p.iterations, p.similaritySearch, p.independentViews = "onnxruntime", 2, 7, False, True
+    assert logic.optionsFromParameters(p) == RegistrationOptions(
+        backend="onnxruntime", independent_views=True, refine=RefineOptions(steps=2), tto=TTOSchedule(iterations=7),
+        search=SearchOptions(enabled=False))
+    assert set(module.OPTION_FIELDS.values()) <= {path for path, _ in setting_paths()}
+    cta = _cta()[0]
+    out = mrml.result_nodes(scene, mrml.RegistrationInputs(cta, {"pa": _run(0.0), "lat": _run(-90.0)}),
+                            _result({"pa": _pose(C.VIEW_PA), "lat": _pose(C.VIEW_LAT_PLUS)}))
+    assert logic.summary(out).splitlines() == ["PA: mNCC 0.500, doubtful", "LAT: mNCC 0.600, ok"]
+    assert logic.summary({}) == ""
 
 
 def test_register_without_torch_says_what_to_install(module, monkeypatch):

@@ -26,11 +26,12 @@ CONTRIBUTOR = re.compile(r"^[A-Z][\w'-]+( [A-Z][\w'-]+)+ \([^()]+\)$")
 
 
 def test_module_imports_exist_in_the_library():
-    """Every ``geopose`` module/name that GeoPose.py imports lazily is there."""
+    """Every ``geopose`` module/name that GeoPose.py and its self-test GeoPoseTest.py import (most lazily) is there."""
     import importlib
 
-    tree = ast.parse((REPO / "GeoPoseModule" / "GeoPose.py").read_text())
-    imports = [n for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("geopose")]
+    imports = [n for name in ("GeoPose.py", "GeoPoseTest.py")
+               for n in ast.walk(ast.parse((REPO / "GeoPoseModule" / name).read_text()))
+               if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("geopose")]
     assert imports
     for node in imports:
         if node.module == "geopose.mrml" or any(a.name == "mrml" for a in node.names):
@@ -38,7 +39,7 @@ def test_module_imports_exist_in_the_library():
         mod = importlib.import_module(node.module)
         for alias in node.names:
             assert hasattr(mod, alias.name) or importlib.util.find_spec(f"{node.module}.{alias.name}"), (
-                f"{node.module}.{alias.name} imported by GeoPose.py does not exist"
+                f"{node.module}.{alias.name} imported by the module does not exist"
             )
 
 

@@ -6,7 +6,6 @@ from Testing/Python39/slicer58.txt), changes none of Slicer's packages."""
 
 from __future__ import annotations
 
-import ast
 import json
 import re
 import subprocess
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from geopose import dependencies
 from geopose.cta import load_cta
 from geopose.dsa import read_dsa
 from geopose.geometry import poses as N
@@ -33,21 +33,30 @@ SLICER_58 = REPO / "Testing" / "Python39" / "slicer58.txt"
 
 
 def _module_requirements() -> tuple[str, ...]:
-    tree = ast.parse((REPO / "GeoPoseModule" / "GeoPose.py").read_text())
-    return next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign) and getattr(n.targets[0], "id", "") == "REQUIREMENTS")
+    """What the module installs into Slicer (geopose.dependencies, read from Logic/geopose/requirements/slicer.txt)."""
+    return dependencies.SLICER_REQUIREMENTS
 
 
 def _lines(path: Path) -> list[str]:
-    return [line for line in (raw.split("#")[0].strip() for raw in path.read_text().splitlines()) if line]
+    """The requirement lines of a pip requirements file, ``-r`` includes followed (relative to the file, as pip reads them)."""
+    lines = []
+    for line in (raw.split("#")[0].strip() for raw in path.read_text().splitlines()):
+        if line.startswith("-r "):
+            lines += _lines(path.parent / line[3:].strip())
+        elif line:
+            lines.append(line)
+    return lines
 
 
 def test_the_python39_environment_holds_the_module_requirements_at_slicer_58s_versions():
     shipped = _lines(SLICER_58)
-    assert {"numpy==1.26.4", "pydicom==2.4.4"} <= set(shipped)  # what Slicer 5.8.1 ships
+    assert {"numpy==1.26.4", "pydicom==2.4.4", "Pillow==10.1.0"} <= set(shipped)  # what Slicer 5.8.1 ships
     lines = _lines(REQUIREMENTS_39)
-    assert "-r slicer58.txt" in lines
-    names = {re.split("[=>]=", line)[0].lower() for line in lines + shipped if not line.startswith("-r")}
-    assert {re.split(">=", r)[0].lower() for r in _module_requirements()} <= names
+    assert lines == shipped + list(_module_requirements())  # Slicer 5.8's packages, then the module's requirements
+    assert "-r ../../Logic/geopose/requirements/slicer.txt" in REQUIREMENTS_39.read_text()  # the one list, included
+    # What Slicer 5.8 ships meets the module's floors (pydicom 2.4.4, Pillow 10.1.0): the rest is what it lacks.
+    pins = {dependencies.normalized(name): version for name, version in (line.split("==") for line in shipped)}
+    assert dependencies.unmet(_module_requirements(), pins) == [r for r in _module_requirements() if r not in ("pydicom>=2.4", "Pillow>=10")]
 
 
 def test_a_first_install_on_slicer_58_changes_none_of_its_packages():
@@ -61,6 +70,8 @@ def test_a_first_install_on_slicer_58_changes_none_of_its_packages():
     assert run.returncode == 0, run.stderr[-4000:]
     out = json.loads(run.stdout.splitlines()[-1])
     assert out["python"] == [3, 9] and out["installed"]["numpy"] == "1.26.4" and out["too_old"] == []
+    # geopose.dependencies runs there on the standard library alone (numpy is Slicer's; it is not imported)
+    assert out["requirements"] == list(_module_requirements()) and out["heavy_modules"] == []
     assert set(out["missing"]) == set(_module_requirements()) - {"pydicom>=2.4", "Pillow>=10"}
     constrained, unconstrained = out["constrained"], out["unconstrained"]
     assert not set(constrained) & set(out["installed"]), "a package Slicer ships would be replaced"

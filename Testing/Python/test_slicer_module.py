@@ -108,7 +108,7 @@ def test_parameter_node_constructs_with_the_library_defaults(module):
     assert p.dsaPA is None and p.dsaLAT is None and p.cta is None
     defaults = RegistrationOptions()
     assert (p.backend, p.device, p.refineSteps, p.iterations) == (
-        defaults.backend, defaults.device, defaults.refine_steps, defaults.iterations)
+        defaults.backend, defaults.device, defaults.refine.steps, defaults.tto.iterations)
     assert module.GeoPoseLogic.optionsFromParameters(p) == defaults
     assert (_annotation(p, "refineSteps", module.WithinRange).minimum, _annotation(p, "refineSteps", module.WithinRange).maximum) == limits.REFINE_STEPS
     assert (_annotation(p, "iterations", module.WithinRange).minimum, _annotation(p, "iterations", module.WithinRange).maximum) == limits.ITERATIONS
@@ -294,7 +294,7 @@ def absent(module, monkeypatch, installs):
     """A requirement that is not installed ("geopose-absent-probe>=1.0"), in a Slicer out of testing
     mode, with pip's dry run answered (its real run in Slicer 5.8's environment: test_python39.py)."""
     requirement = "geopose-absent-probe>=1.0"
-    monkeypatch.setattr(module, "REQUIREMENTS", module.REQUIREMENTS + (requirement,))
+    monkeypatch.setattr(module.dependencies, "SLICER_REQUIREMENTS", module.dependencies.SLICER_REQUIREMENTS + (requirement,))
     slicer.app.testing = False
 
     def plan(python, requirements, constraints):
@@ -309,7 +309,7 @@ def test_a_first_install_pins_every_installed_package_and_shows_the_versions(mod
     from importlib.metadata import version
 
     logic = module.GeoPoseLogic()
-    assert logic.missingRequirements() == [absent]  # this environment meets every other floor
+    assert module.dependencies.missing() == [absent]  # this environment meets every other floor
     installs["answer"]["ok"] = False
     assert logic.ensureDependencies(askUser=True) is False  # declined: nothing installed
     assert installs["pip"] == [] and len(installs["asked"]) == 1
@@ -329,7 +329,7 @@ def test_a_first_install_pins_every_installed_package_and_shows_the_versions(mod
 
 def test_a_requirement_above_a_package_slicer_ships_is_refused_before_pip(module, monkeypatch, installs):
     slicer.app.testing = False
-    monkeypatch.setattr(module, "REQUIREMENTS", module.REQUIREMENTS + ("numpy>=999",))
+    monkeypatch.setattr(module.dependencies, "SLICER_REQUIREMENTS", module.dependencies.SLICER_REQUIREMENTS + ("numpy>=999",))
     with pytest.raises(InputError, match=r"GeoPose needs numpy>=999 \(this Slicer has .*never replaces a package of Slicer"):
         module.GeoPoseLogic().ensureDependencies(askUser=True)
     assert installs["pip"] == [] and installs["asked"] == []
@@ -361,13 +361,13 @@ def test_torch_is_installed_only_when_asked_for_through_pytorch_utils(module, mo
     from geopose.dsa import DSARun, write_dsa_nifti
 
     logic = module.GeoPoseLogic()
-    monkeypatch.setattr(module, "TORCH_REQUIREMENT", ">=999")  # torch here is older than that
+    monkeypatch.setattr(module.dependencies, "TORCH_REQUIREMENT", ">=999")  # torch here is older than that
     assert not logic.torchAvailable()
     assert logic.ensureDependencies(askUser=True) is True and installs["torch"] == []
     installs["answer"]["ok"] = False
     assert logic.ensureDependencies(askUser=True, torch=True) is False
     assert installs["torch"] == [{"askConfirmation": True, "torchVersionRequirement": ">=999"}]
-    monkeypatch.setattr(module, "TORCH_MINIMUM_PYTHON", (99, 0))
+    monkeypatch.setattr(module.dependencies, "TORCH_MINIMUM_PYTHON", (99, 0))
     with pytest.raises(InputError, match="needs Slicer 5.10 or later"):
         logic.ensureDependencies(torch=True)
     # Importing a DSA run from the panel never asks for PyTorch.
@@ -381,21 +381,6 @@ def test_torch_is_installed_only_when_asked_for_through_pytorch_utils(module, mo
 
 
 # ------------------------------------------------------------------ inputs and errors
-def test_dsa_node_goes_through_the_readers_checks(module):
-    scene = slicer.mrmlScene
-    frames = np.ones((2, DET.rows, DET.cols), np.float32)
-    seq, _ = mrml.dsa_sequence_node(scene, frames, DET, np.eye(4), "run", 0.1, ANGLES)
-    logic = module.GeoPoseLogic()
-    run = logic.dsaRunFromNode(seq)
-    assert run.detector == DET and run.angles == ANGLES and run.frame_time_ms == pytest.approx(100.0)
-    assert run.metadata["geometry_sources"]["sod_mm"] == "Slicer node run"
-    with pytest.raises(ValueError, match="not shorter than the source-to-detector"):
-        logic.dsaRunFromNode(seq, {"sod_mm": 1200.0})
-    bare = mrml.plane_volume_node(scene, frames[0], DET, np.eye(4), "bare")  # no geometry attributes
-    with pytest.raises(ValueError, match="missing in DSA node 'bare'"):
-        logic.dsaRunFromNode(bare)
-
-
 def test_a_user_error_on_apply_is_shown_as_one_line(module, monkeypatch):
     scene = slicer.mrmlScene
     nodes = _output_nodes(scene)
@@ -576,14 +561,14 @@ def test_pytorch_is_offered_once_with_what_the_tto_adds(newest, phantom, monkeyp
     with what the test-time optimisation adds; a decline registers with onnxruntime, says what was
     skipped, and is not asked again. On Slicer 5.8 (Python 3.9) nothing is offered; the status says why."""
     module = newest
-    monkeypatch.setattr(module, "TORCH_REQUIREMENT", ">=999")
+    monkeypatch.setattr(module.dependencies, "TORCH_REQUIREMENT", ">=999")
     runs = _count_registrations(module, monkeypatch)
     w = _panel_on_phantom(module, phantom)
     w._parameterNode.backend = "auto"
     installs["answer"]["ok"] = False
     w.ui.applyButton.click()
     (offer,) = installs["asked"]
-    assert offer.startswith(module.TTO_BENEFIT) and "3.0 mm to 0.9 mm" in offer and "Without a vessel segmentation" in offer
+    assert offer.startswith(module.dependencies.TTO_BENEFIT) and "3.0 mm to 0.9 mm" in offer and "Without a vessel segmentation" in offer
     assert runs[-1].backend == "onnxruntime" and "test-time optimisation was skipped" in w.ui.statusLabel.text
     w.ui.applyButton.click()
     assert len(installs["asked"]) == 1 and len(runs) == 2  # asked once
@@ -591,7 +576,7 @@ def test_pytorch_is_offered_once_with_what_the_tto_adds(newest, phantom, monkeyp
     installs["answer"]["ok"] = True  # accepted: installed through PyTorchUtils, without a second question
     w.ui.applyButton.click()
     assert installs["torch"] == [{"askConfirmation": False, "torchVersionRequirement": ">=999"}]
-    monkeypatch.setattr(module, "TORCH_MINIMUM_PYTHON", (99, 0))  # Slicer 5.8
+    monkeypatch.setattr(module.dependencies, "TORCH_MINIMUM_PYTHON", (99, 0))  # Slicer 5.8
     sys.modules["qt"].QSettings.store.clear()
     w.ui.applyButton.click()
     assert len(installs["asked"]) == 2 and "needs Slicer 5.10 or later" in w.ui.statusLabel.text
@@ -618,12 +603,11 @@ def test_a_dsa_runs_shown_frame_is_named_apart_and_never_an_input(module, tmp_pa
     assert proxy not in w.ui.dsaPASelector.nodes() and seq in w.ui.dsaPASelector.nodes()
     cta = mrml.volume_to_node(scene, __import__("test_mrml_adapters")._cta()[0], "CTA")
     assert w.ui.ctaSelector.nodes() == [cta] and p.cta is cta  # selected automatically, as Slicer's combo box does
-    logic = module.GeoPoseLogic()
-    assert logic.firstCTACandidate() is cta
-    picked = logic.dsaRunFromNode(proxy)
+    assert mrml.first_cta_candidate(scene) is cta
+    picked = mrml.run_from_node(proxy)
     assert picked.detector == run.detector and picked.angles == run.angles and picked.frames.shape[0] == 2
     with pytest.raises(InputError, match="is a DSA image"):
-        logic.register(cta=proxy, dsaPA=seq, dsaLAT=seq)
+        module.GeoPoseLogic().register(cta=proxy, dsaPA=seq, dsaLAT=seq)
 
 
 def test_the_module_has_its_icon_in_the_source_tree(module):

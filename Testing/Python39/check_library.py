@@ -1,5 +1,5 @@
 """Run under Python 3.9 with pydicom 2.4.4 (Slicer 5.8): the torch-free registration of a phantom
-folder, the DICOM writer's round trip, and a byte-compile of the module file. Prints one JSON object.
+folder, the DICOM writer's round trip, and a byte-compile of the module's files. Prints one JSON object.
 
 Usage: python check_library.py PHANTOM_FOLDER REPOSITORY
 """
@@ -26,7 +26,8 @@ runs = {key: read_dsa(folder / f"dsa_{key}.dcm") for key in ("pa", "lat")}
 record = build_record(register_case(cta, runs), runs)  # no PyTorch here: onnxruntime, TTO skipped
 written = read_dsa(write_dsa_dicom(runs["pa"], folder / "written_pa.dcm"))
 with tempfile.TemporaryDirectory() as tmp:
-    py_compile.compile(str(repo / "GeoPoseModule" / "GeoPose.py"), cfile=str(Path(tmp) / "GeoPose.pyc"), doraise=True)
+    for name in ("GeoPose", "GeoPoseTest"):
+        py_compile.compile(str(repo / "GeoPoseModule" / f"{name}.py"), cfile=str(Path(tmp) / f"{name}.pyc"), doraise=True)
 print(json.dumps({
     "python": list(sys.version_info[:2]),
     "pydicom": pydicom.__version__,

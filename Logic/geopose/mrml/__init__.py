@@ -25,7 +25,6 @@ from .volumes import (
     segmentation_from_masks,
     volume_from_node,
     volume_to_node,
-    write_volume_node,
 )
 from .plane import (
     detector_ijk_to_ras,
@@ -33,6 +32,7 @@ from .plane import (
     frames_from_node,
     frames_from_sequence,
     geometry_from_attributes,
+    plane_axes,
     plane_volume_node,
     proxy_name,
     proxy_sequence,
@@ -50,6 +50,24 @@ from .outputs import (
     result_table_node,
     transform_matrix,
 )
+from .registration import (
+    OUTPUT_KEYS,
+    VIEW_KEYS,
+    VIEW_TITLES,
+    RegistrationInputs,
+    dsa_image_ids,
+    first_cta_candidate,
+    geometry_overrides,
+    is_dsa_image,
+    read_dsa_node,
+    read_inputs,
+    register_nodes,
+    result_nodes,
+    result_rows,
+    result_summary,
+    run_from_node,
+    segmentation_labels,
+)
 
 __all__ = [
     "camera_node", "camera_to_ras_points", "detector_image_model_node", "detector_ijk_to_ras", "dsa_sequence_node", "frames_from_node",
@@ -59,5 +77,8 @@ __all__ = [
     "proxy_name", "proxy_sequence", "sequence_proxy_ids",
     "projected_segmentation_node", "read_volume_node", "result_table_node", "save_mrb",
     "segment_colors", "segmentation_from_labelmap", "segmentation_from_masks", "set_geometry_attributes", "volume_from_node", "volume_to_node",
-    "write_volume_node", "sequences_logic", "transform_matrix",
+    "sequences_logic", "transform_matrix", "plane_axes",
+    "OUTPUT_KEYS", "VIEW_KEYS", "VIEW_TITLES", "RegistrationInputs", "dsa_image_ids", "first_cta_candidate",
+    "geometry_overrides", "is_dsa_image", "read_dsa_node", "read_inputs", "register_nodes", "result_nodes", "result_rows",
+    "result_summary", "run_from_node", "segmentation_labels",
 ]

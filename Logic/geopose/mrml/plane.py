@@ -28,6 +28,7 @@ __all__ = [
     "ATTRIBUTE_PREFIX",
     "detector_index_to_camera",
     "detector_ijk_to_ras",
+    "plane_axes",
     "plane_volume_node",
     "dsa_sequence_node",
     "frames_from_sequence",
@@ -60,6 +61,19 @@ def detector_ijk_to_ras(detector: Detector, pose_ras: np.ndarray) -> np.ndarray:
     if pose_ras.shape != (4, 4):
         raise ValueError(f"a pose is a 4x4 camera-to-RAS matrix, got shape {pose_ras.shape}")
     return pose_ras @ AP_REORIENT @ detector_index_to_camera(detector)
+
+
+def plane_axes(node) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(normal, column direction, centre)`` in RAS of a detector-plane volume node (a single-slice volume,
+    e.g. :func:`plane_volume_node`'s): unit vectors along its k and i axes and its centre pixel's position (mm),
+    what a slice view needs to show the plane (``SetSliceToRASByNTP``)."""
+    from .volumes import volume_from_node
+
+    vol = volume_from_node(node)
+    m = vol.ijk_to_ras
+    i, j, _k = vol.shape_ijk
+    centre = m @ [(i - 1) / 2, (j - 1) / 2, 0, 1]
+    return m[:3, 2] / np.linalg.norm(m[:3, 2]), m[:3, 0] / np.linalg.norm(m[:3, 0]), centre[:3]
 
 
 def _check_image(image: np.ndarray, detector: Detector) -> np.ndarray:

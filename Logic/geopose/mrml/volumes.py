@@ -26,7 +26,6 @@ __all__ = [
     "segmentation_from_masks",
     "segment_colors",
     "read_volume_node",
-    "write_volume_node",
 ]
 
 #: Largest deviation from orthogonality (cosine) accepted for an IJK-to-RAS matrix.
@@ -194,14 +193,3 @@ def read_volume_node(
         raise ValueError(f"could not read {path} as an image volume: check the file format (NIfTI, NRRD, MHA)")
     node.CreateDefaultDisplayNodes()
     return node
-
-
-def write_volume_node(node: "slicer.vtkMRMLScalarVolumeNode", path: str | Path) -> Path:
-    """Write a volume node to ``path`` (format from the extension) without changing the node."""
-    path = Path(path)
-    storage = slicer.vtkMRMLVolumeArchetypeStorageNode()
-    storage.SetFileName(str(path))
-    storage.SetUseCompression(True)
-    if not storage.WriteData(node):
-        raise OSError(f"could not write {node.GetName()!r} to {path}: check the folder and the file extension")
-    return path
