@@ -322,7 +322,7 @@ def test_similarity_search_recovers_shift_and_in_plane_turns_and_keeps_the_truth
     targets = {k: render_model_view(renderer, truth[k], RENDER_PX) for k in RIG}
     # Started at the truth: every neighbour scores lower, nothing moves; 10 moves per step size.
     kept = similarity_search(renderer, targets, X_true, RIG, RENDER_PX)
-    assert kept.moves == [] and kept.evaluations == 1 + 11 * len(SearchOptions.schedule)
+    assert kept.moves == () and kept.evaluations == 1 + 11 * len(SearchOptions.schedule)
     np.testing.assert_allclose(kept.patient_pose, X_true, atol=1e-12)
     # Off by a shift in every axis and a turn about each central ray (each view's in-plane rotation).
     start = moved_by(X_true, np.radians(3.0) * _ray("pa", X_true) - np.radians(2.0) * _ray("lat", X_true),

@@ -117,10 +117,11 @@ def register_case(
         with clock("mirror", engine):
             mirror = mirror_test(renderer, case.views, kept.patient_pose, rig, options.objective, engine.device, monitor)
     registration = Registration(
-        "biplane-rigid", rig, kept.patient_pose, dict(starts.objectives), kept.start,
-        dict(tournament.runs) if tournament else {}, dict(tournament.objectives) if tournament else {},
-        tournament.vessel_selection if tournament else None, {"view_disagreement_mm": init.view_disagreement_mm},
-        refined.start, refined.mncc, search, vessel_evidence, kept.bound, mirror, kept.kept_learned)
+        "biplane-rigid", rig, patient_pose=kept.patient_pose, starts=dict(starts.objectives), chosen_start=kept.start,
+        tto_runs=dict(tournament.runs) if tournament else {}, tto_objective=dict(tournament.objectives) if tournament else {},
+        vessel_selection=tournament.vessel_selection if tournament else None,
+        checks={"view_disagreement_mm": init.view_disagreement_mm}, refine_start=refined.start, refine_starts=refined.mncc,
+        search=search, vessel_evidence=vessel_evidence, bound=kept.bound, mirror=mirror, kept_learned=kept.kept_learned)
     with clock("score", engine):
         outcomes = score_views(renderer, case, registration, inits=init.views, init_poses=view_poses(init.patient_pose, rig),
                                refined=refined.traces, learned=learned, finals=kept.poses, searched=search is not None,

@@ -44,24 +44,24 @@ def greedy_refine(
     monitor = monitor or Monitor()
     current = np.asarray(pose, dtype=np.float64)
     image = render_model_view(renderer, current, render_px)
-    score = mncc(target[0, 0], image[0, 0])
-    trace = RefineTrace(current, score, current, score)
+    start, start_score = current, mncc(target[0, 0], image[0, 0])
+    score, proposals = start_score, []
     for k in range(max_proposals):
         monitor.step("refine", k / max_proposals, f"proposal {k + 1}/{max_proposals}")
         candidate = invert(refine.predict_residual(target, image, view)[0]) @ current
         cand_image = render_model_view(renderer, candidate, render_px)
         cand_score = mncc(target[0, 0], cand_image[0, 0])
         accepted = cand_score > score
-        trace.proposals.append(Proposal(candidate, cand_score, accepted))
+        proposals.append(Proposal(candidate, cand_score, accepted))
         if not accepted:
             break
         current, image, score = candidate, cand_image, cand_score
-    trace.pose, trace.mncc = current, score
+    trace = RefineTrace(start, start_score, current, score, tuple(proposals))
     monitor.step("refine", 1.0, f"{trace.accepted} of {len(trace.proposals)} proposals accepted")
     return trace
 
 
-@dataclass
+@dataclass(frozen=True)
 class StartsRefined:
     """Greedy Refine of one patient pose from several starts: the winning start's name, its
     traces per view and every start's final mean mNCC."""
@@ -106,7 +106,8 @@ def refine_from_starts(
         return images, {n: {k: mncc(targets[k][0, 0], im[k][0, 0]) for k in keys} for n, im in images.items()}
 
     images, scores = render_all(X)
-    traces = {n: {k: RefineTrace(X[n] @ rig[k], scores[n][k], X[n] @ rig[k], scores[n][k]) for k in keys} for n in X}
+    first = {n: {k: (X[n] @ rig[k], scores[n][k]) for k in keys} for n in X}
+    proposals: dict[str, dict[str, list[Proposal]]] = {n: {k: [] for k in keys} for n in X}
     score = {n: float(np.mean(list(scores[n].values()))) for n in X}
     running = list(X)
     max_proposals = options.steps
@@ -126,16 +127,15 @@ def refine_from_starts(
                 cand_score = float(np.mean(list(cand_scores[n].values())))
                 accepted = cand_score > score[n]
                 for k in keys:
-                    traces[n][k].proposals.append(Proposal(candidate @ rig[k], cand_scores[n][k], accepted))
+                    proposals[n][k].append(Proposal(candidate @ rig[k], cand_scores[n][k], accepted))
                 if accepted:
                     X[n], images[n], scores[n], score[n] = candidate, cand_images[n], cand_scores[n], cand_score
                     improved.append(n)
             if not retry:
                 candidates = {n: part_way(X[n], moves[n], options.retry_fraction) for n in candidates if n not in improved}
         running = [n for n in running if n in improved]
-    for n in X:
-        for k in keys:
-            traces[n][k].pose, traces[n][k].mncc = X[n] @ rig[k], scores[n][k]
+    traces = {n: {k: RefineTrace(*first[n][k], X[n] @ rig[k], scores[n][k], tuple(proposals[n][k])) for k in keys}
+              for n in X}
     best = max(score, key=score.get)
     trace = traces[best][keys[0]]
     monitor.step("refine", 1.0, f"best from {best}: {trace.accepted} of {len(trace.proposals)} proposals accepted")

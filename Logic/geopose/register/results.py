@@ -29,7 +29,7 @@ __all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "SearchTrac
            "CaseRegistration"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class Calibration:
     """Projection-space calibration: ``frame_transfer`` maps canonical to native poses (centred
     frames, mm); ``image`` is the PA calibration DRR ``(1, 1, 256, 256)``."""
@@ -43,7 +43,7 @@ class Calibration:
         return self.frame_transfer @ pose_canonical
 
 
-@dataclass
+@dataclass(frozen=True)
 class InitEstimate:
     """Calibrated Init output for one DSA view: native and canonical pose, the view label used,
     the view logits ``(3,)`` and the label the network itself chose (PA/lateral from metadata)."""
@@ -55,14 +55,14 @@ class InitEstimate:
     network_view: int
 
 
-@dataclass
+@dataclass(frozen=True)
 class Proposal:
     pose: np.ndarray
     mncc: float
     accepted: bool
 
 
-@dataclass
+@dataclass(frozen=True)
 class RefineTrace:
     """Greedy refinement of one view: start and final pose with their mNCC, every proposal."""
 
@@ -70,14 +70,14 @@ class RefineTrace:
     start_mncc: float
     pose: np.ndarray
     mncc: float
-    proposals: list[Proposal] = field(default_factory=list)
+    proposals: tuple[Proposal, ...] = ()
 
     @property
     def accepted(self) -> int:
         return sum(p.accepted for p in self.proposals)
 
 
-@dataclass
+@dataclass(frozen=True)
 class SearchTrace:
     """The similarity search of one patient pose (``search.py``): start and end patient pose
     ``(4, 4)`` with the views' mean mNCC, the moves kept ``(parameter, step)`` in order, and how
@@ -87,11 +87,11 @@ class SearchTrace:
     start_mncc: float
     patient_pose: np.ndarray
     mncc: float
-    moves: list[tuple[str, float]] = field(default_factory=list)
+    moves: tuple[tuple[str, float], ...] = ()
     evaluations: int = 0
 
 
-@dataclass
+@dataclass(frozen=True)
 class ViewOutcome:
     """Everything one view went through. ``init_pose`` is the pose after the Init stage: the
     view's own calibrated Init, or, registering one patient pose, the fused one; ``search_pose``
@@ -151,7 +151,7 @@ class Registration:
     kept_learned: str = ""
 
 
-@dataclass
+@dataclass(frozen=True)
 class CaseRegistration:
     """One registered case. ``renderer`` is the renderer that was used (it renders the CTA's
     channels for overlays and metrics); ``tto`` is None when no test-time optimisation ran;

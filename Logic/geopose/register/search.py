@@ -56,7 +56,7 @@ def similarity_search(
     monitor = monitor or Monitor()
     X = np.asarray(patient, dtype=np.float64)
     keys = list(rig)
-    trace = SearchTrace(X, 0.0, X, 0.0)
+    start, moves, evaluations = X, [], [0]
 
     def scorer(px: int):
         """The views' mean mNCC of a patient pose, both images at ``px`` pixels per side."""
@@ -65,14 +65,14 @@ def similarity_search(
 
         def score(Y: np.ndarray) -> float:
             images = renderer.render(np.stack([Y @ rig[k] for k in keys]), detector, ("total",))
-            trace.evaluations += 1
+            evaluations[0] += 1
             return float(np.mean([mncc(small[k], images[j, 0]) for j, k in enumerate(keys)]))
 
         return score
 
-    trace.start_mncc = scorer(schedule[-1][1] or render_px)(X)
+    start_mncc = scorer(schedule[-1][1] or render_px)(X)
     for i, (size, px) in enumerate(schedule):
-        monitor.step("search", i / len(schedule), f"step {size:g} ({trace.evaluations} poses scored)")
+        monitor.step("search", i / len(schedule), f"step {size:g} ({evaluations[0]} poses scored)")
         score = scorer(px or render_px)
         best = score(X)
         improved = True
@@ -84,10 +84,9 @@ def similarity_search(
                     value = score(candidate)
                     if value > best:
                         X, best, improved = candidate, value, True
-                        trace.moves.append((name, sign * size))
+                        moves.append((name, sign * size))
                         break
                 if improved:
                     break
-    trace.patient_pose, trace.mncc = X, best
-    monitor.step("search", 1.0, f"{len(trace.moves)} moves kept of {trace.evaluations} poses scored")
-    return trace
+    monitor.step("search", 1.0, f"{len(moves)} moves kept of {evaluations[0]} poses scored")
+    return SearchTrace(start, start_mncc, X, best, tuple(moves), evaluations[0])

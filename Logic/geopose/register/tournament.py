@@ -75,7 +75,7 @@ def optimise_from_starts(
         parts = offset + min(n_final, len(names))
         for i, name in enumerate(names):
             runs[name].advance(first.coarse + 1, monitor.part(i, parts, f"from {name}"))
-        there = {name: runs[name].result.trace[first.coarse]["loss"] for name in names}
+        there = {name: runs[name].trace[first.coarse]["loss"] for name in names}
         if len(names) > n_final:
             ranking = there
             ranked = sorted((k for k in names if k not in keep), key=ranking.get)
@@ -85,11 +85,8 @@ def optimise_from_starts(
             restrict_to_opacified({k: runs[k] for k in finalists}, runs[leader], leader, rig, first.coarse)
     for j, name in enumerate(finalists):
         runs[name].advance(first.n + 1, monitor.part(offset + j, parts, f"from {name}"))
-    out = {}
-    for name, run in runs.items():
-        out[name] = run.finish()
-        out[name].stopped_at = None if name in finalists else run.it
-        out[name].ranking_loss = ranking.get(name)
+    out = {name: run.finish(stopped_at=None if name in finalists else run.it, ranking_loss=ranking.get(name))
+           for name, run in runs.items()}
     monitor.step("tto", 1.0, "done")
     return out
 

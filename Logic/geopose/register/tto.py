@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
@@ -80,7 +80,7 @@ PAPER_SCHEDULE = TTOSchedule(coarse_fraction=0.0, paper=True, axis_search_at=(),
                              final_lr_fraction=1.0 / (TTOSchedule.div_factor * 1e4))
 
 
-@dataclass
+@dataclass(frozen=True)
 class TTOResult:
     """Best pose per view, its mNCC and iteration; the patient pose when one was optimised;
     ``trace``: per iteration the loss, the image size, the learning rate of each parameter group that
@@ -96,8 +96,8 @@ class TTOResult:
     best_mncc: dict[str, float]
     best_iteration: dict[str, int]
     patient_pose: np.ndarray | None = None
-    trace: list[dict] = field(default_factory=list)
-    axis_searches: list[dict] = field(default_factory=list)
+    trace: tuple[dict, ...] = ()
+    axis_searches: tuple[dict, ...] = ()
     stopped_at: int | None = None
     ranking_loss: float | None = None
     vessel_selection: VesselSelection | None = None
@@ -282,7 +282,9 @@ class TTORun:
         # pose, whose full-size evaluations are kept in ``seen`` (poses, iteration, prior) to be scored again
         self.best: dict = {}
         self.seen: list[tuple[dict, int, float]] = []
-        self.result = TTOResult({}, {}, {})
+        self.trace: list[dict] = []
+        self.axis_searches: list[dict] = []
+        self.vessel_selection: VesselSelection | None = None
         self.it = 0
         if self.coarse > 0:  # the start, scored at full size (the coarse steps are not compared with it)
             with torch.no_grad():
@@ -334,7 +336,7 @@ class TTORun:
 
     def patient_at(self, it: int) -> np.ndarray:
         """The patient pose ``(4, 4)`` this run evaluated at iteration ``it`` (a patient-pose run)."""
-        seen = self.result.trace[it]["views"]
+        seen = self.trace[it]["views"]
         name = next(iter(seen))
         return patient_pose(np.asarray(seen[name]["pose"]), self.rig[name])
 
@@ -376,7 +378,7 @@ class TTORun:
             turns, scores, chosen = best_turn(score, step)
             params.move_along(start, direction, math.radians(chosen))
             params.w_ref.copy_(params.w.detach())
-        self.result.axis_searches.append({
+        self.axis_searches.append({
             "iteration": it, "turn_deg": turns, "loss": scores, "chosen_deg": chosen,
             "rotation_per_rad": np.asarray(direction[0]).tolist(),
             "shift_mm_per_rad": np.asarray(direction[1]).tolist()})
@@ -395,7 +397,7 @@ class TTORun:
             monitor.step("tto", (it - begin) / max(end - begin, 1), f"iteration {it}/{self.n} ({size} size)")
             with torch.set_grad_enabled(not final):
                 total, losses, poses = self._evaluate(size)
-            self.result.trace.append({
+            self.trace.append({
                 "iteration": it, "size": size, "loss": float(total.detach()),
                 "learning_rates": None if final else [g["lr"] for g in self.optimiser.param_groups],
                 "views": {k: {"mncc": losses[k][1], "dice_loss": losses[k][2], "vessel_ncc": losses[k][3],
@@ -410,15 +412,16 @@ class TTORun:
                 self.scheduler.step()
             self.it += 1
 
-    def finish(self) -> TTOResult:
-        """The result: the best pose seen (per view, or of the patient pose)."""
-        result = self.result
-        for _, scores, poses, it, _ in self.best.values():
-            for name, pose in poses.items():
-                result.poses[name], result.best_mncc[name], result.best_iteration[name] = pose, scores[name], it
-        if self.joint:
-            result.patient_pose = patient_pose(result.poses[self.names[0]], self.rig[self.names[0]])
-        return result
+    def finish(self, **fields) -> TTOResult:
+        """The result: the best pose seen (per view, or of the patient pose), the trace, and ``fields``
+        (``stopped_at``, ``ranking_loss``)."""
+        poses, best_mncc, best_iteration = {}, {}, {}
+        for _, scores, best_poses, it, _ in self.best.values():
+            for name, pose in best_poses.items():
+                poses[name], best_mncc[name], best_iteration[name] = pose, scores[name], it
+        patient = patient_pose(poses[self.names[0]], self.rig[self.names[0]]) if self.joint else None
+        return TTOResult(poses, best_mncc, best_iteration, patient, tuple(self.trace), tuple(self.axis_searches),
+                         vessel_selection=self.vessel_selection, **fields)
 
 
 def restrict_to_opacified(runs: Mapping[str, TTORun], leader: TTORun, name: str, rig: Mapping[str, np.ndarray],
@@ -439,7 +442,7 @@ def restrict_to_opacified(runs: Mapping[str, TTORun], leader: TTORun, name: str,
         if vessel_shift_mm(images.renderer.volume, selection, run.patient_at(it)) <= OPACIFIED_NEAR_MM:
             run.images = restricted
             run.rescore_best()
-            run.result.vessel_selection = selection
+            run.vessel_selection = selection
 
 
 def test_time_optimise(
