@@ -72,7 +72,7 @@ voxel is projected at the leading start's pose and kept where both views' vessel
 contrast (blurred by 2 px at the TTO size, at least 2 % of the image's maximum); the runs near
 that pose compare those alone from then on. On a selective ICA injection of phantom 12 it keeps
 seven tenths of the filled arteries at three quarters precision (a fifth of all vessels are
-filled; `Testing/Python/test_register.py`). What it still keeps wrongly are non-filled vessels
+filled; `Testing/Python/test_opacified.py`). What it still keeps wrongly are non-filled vessels
 that overlap filled ones, or bright motion residue, in both views (on validation subjects the
 other carotid, its anterior cerebral artery and the basilar system), and what it loses
 are filled branches outside the DSA's cranium mask (the external carotid's); on the 40 benchmark

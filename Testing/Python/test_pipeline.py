@@ -1,0 +1,214 @@
+"""The whole registration (``pipeline.register_case``) with ground-truth oracles in place of trained networks.
+
+A phantom case (2 mm, written and read back through the real file formats) is
+registered with an oracle Init that answers the true canonical poses, so the
+calibration algebra, the greedy gate and the test-time optimisation are tested
+against known answers without any trained weights; a bad Init falls back to the
+DICOM angles, one view's Init alone is a start, and on weak image evidence the
+networks' estimate is kept.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from register_helpers import ORACLE_RENDER_PX, OracleInit, OracleRefine, _perturb, _read_phantom
+
+from geopose import contract as C
+from geopose.cta import load_cta
+from geopose.geometry import isopose
+from geopose.nets import ModelSet
+from geopose.options import RegistrationOptions, SearchOptions
+from geopose.phantom import labels as L
+from geopose.register import TTOSchedule, register_case
+from geopose.register.evaluate import evaluate_pose, load_truth, truth_metrics
+from geopose.register.objective import objective_value
+from geopose.register.record import SCHEMA_VERSION, build_record
+from geopose.register.report import write_overlays
+from geopose.render.renderer import make_renderer
+
+
+#: mPCD (mm at the detector) the TTO must reach on the phantom's simulated DSA MAP (see test_oracle_registration_...).
+TTO_ORACLE_MPCD_MM = 5.0
+
+
+def oracle_models(init: OracleInit, refine: OracleRefine) -> ModelSet:
+    return ModelSet(init, refine, render_px=ORACLE_RENDER_PX, runtime="torch")
+
+
+def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
+    case = phantom_case
+    N, true, cta, runs = _read_phantom(case)
+    start = {k: _perturb(true[k]) for k in true}
+    t_cal = isopose(C.VIEW_PA)
+    # A perfect Init: canonical poses N @ T for the calibration DRR and for each view.
+    init = OracleInit([N @ t_cal, N @ start["pa"], N @ start["lat"]])
+    refine = OracleRefine([])  # identity residuals: no proposal can strictly improve
+    stages = []
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    result = register_case(
+        cta, runs, models=oracle_models(init, refine), segmentation=labels.like(L.vessel_mask(labels.array).astype(np.uint8)),
+        options=RegistrationOptions(backend="torch", device="cpu", tto=TTOSchedule(px=128)),
+        progress=lambda stage, f, msg: stages.append(stage),
+    )
+    # Calibration recovers the canonical->native transfer exactly (it is inverse(N)); the
+    # calibration image is the min-max DRR in the model geometry, rendered at the models' size.
+    np.testing.assert_allclose(result.calibration.frame_transfer, np.linalg.inv(N), atol=1e-6)
+    assert init.images[0].shape == (1, 1, C.MODEL_DETECTOR_PX, C.MODEL_DETECTOR_PX)
+    assert init.images[0].min() == 0.0 and init.images[0].max() == 1.0
+    for key in ("pa", "lat"):
+        view = result.views[key]
+        np.testing.assert_allclose(view.init.pose_native, start[key], atol=1e-6)
+        # Identity proposals never strictly improve mNCC: the proposal and its half-size retry, both
+        # rejected. The refined pose is one of the starts, all combinations of the views' patient poses
+        # (equal up to the DICOM angles' stored precision).
+        assert len(view.refine.proposals) == 2 and not any(p.accepted for p in view.refine.proposals)
+        np.testing.assert_allclose(view.refine.pose[:3, :3], start[key][:3, :3], atol=1e-3)
+        np.testing.assert_allclose(view.refine.pose[:3, 3], start[key][:3, 3], atol=0.5)
+    assert refine.answered == 2 * 9  # both views once from each of the nine combined starts
+    assert result.registration.refine_start in result.registration.refine_starts
+    assert {"prepare", "calibration", "init", "refine", "search", "tto", "done"} <= set(stages)
+    assert result.engine["render_px"] == ORACLE_RENDER_PX
+    metrics = truth_metrics(result, runs, load_truth(case / "cta.nii.gz"))
+    for key in ("pa", "lat"):
+        before, after = metrics[key]["init"], metrics[key]["final"]
+        assert before["mpcd_mm"] > 3.0, before
+        # On the phantom's simulated MAPs the GeoReg objective's own optimum lies 1-4.5 mm from
+        # the truth, so this checks a large gain and <= TTO_ORACLE_MPCD_MM; the optimiser itself
+        # reaches <= 1 mm on a consistent target (next test).
+        assert after["mpcd_mm"] <= TTO_ORACLE_MPCD_MM, (key, before["mpcd_mm"], after["mpcd_mm"])
+        assert after["mpcd_mm"] < 0.6 * before["mpcd_mm"] or after["mpcd_mm"] <= 1.0
+        assert after["rotation_error_deg"] < before["rotation_error_deg"]
+    record = build_record(result, runs, truth_metrics=metrics)
+    assert record["schema_version"] == SCHEMA_VERSION
+    # The similarity search moved the refined patient pose to a higher mNCC and nearer the truth.
+    search = record["registration"]["similarity_search"]
+    assert search["mncc"] > search["start_mncc"] and search["moves"] and search["evaluations"] > 30
+    for key in ("pa", "lat"):
+        assert metrics[key]["search"]["mpcd_mm"] < metrics[key]["refine"]["mpcd_mm"], (key, metrics[key])
+    json.dumps(record)  # JSON-ready
+    pa = record["views"]["pa"]
+    assert np.allclose(np.asarray(pa["pose_ras"]), cta.centred_to_ras @ np.asarray(pa["pose_centred"]))
+    assert len(record["tto_trace"]) == TTOSchedule.iterations + 1
+    assert [s["iteration"] for s in record["tto_axis_searches"]] == sorted(TTOSchedule().axis_search_iterations())
+    assert all(len(s["rotation_per_rad"]) == 3 and len(s["shift_mm_per_rad"]) == 3 for s in record["tto_axis_searches"])
+    assert pa["quality"]["flag"] in ("ok", "doubtful", "failed")
+    assert record["engine"]["backend"] == "torch" and record["options"]["tto"]["px"] == 128
+    # Overlays: one PNG per view, three stages side by side, vessels drawn in colour.
+    pngs = write_overlays(result, case / "overlays", load_truth(case / "cta.nii.gz").carotid_points_mm)
+    assert [p.name for p in pngs] == ["overlay_pa.png", "overlay_lat.png"]
+    rgb = np.asarray(Image.open(pngs[0]))
+    assert rgb.shape[1] > 3 * rgb.shape[0] * 0.9  # three panels
+    red = (rgb[..., 0] > 200) & (rgb[..., 1] < 120)
+    assert red.sum() > 100  # the projected vessels
+
+
+class SideSwappedInit(OracleInit):
+    """An oracle Init whose view logits read the other lateral side than the one it is told."""
+
+    def predict(self, image, is_lateral=None, mirror=True, view=None):
+        pose, label, _ = super().predict(image, is_lateral, mirror, view)
+        read = 2 - label if bool(np.asarray(is_lateral).reshape(-1)[0]) else label
+        return pose, label, np.eye(3)[read]
+
+
+def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
+    """Init 20 deg / 60 mm off, reading the lateral on the wrong side: the DICOM-angle pose scores
+    best of the candidate starts, the TTO runs from it and from the one distinct learned start, the
+    result comes from the DICOM angles' run and is no worse than that start by the same objective,
+    and the lateral view carries the side doubt."""
+    case = phantom_case
+    N, true, cta, runs = _read_phantom(case)
+    far = {k: _perturb(true[k], (12.0, -10.0, 12.0), (40.0, -30.0, 30.0)) for k in true}
+    init = SideSwappedInit([N @ isopose(C.VIEW_PA), N @ far["pa"], N @ far["lat"]])
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    result = register_case(
+        cta, runs, models=oracle_models(init, OracleRefine([])), segmentation=labels.like(L.vessel_mask(labels.array).astype(np.uint8)),
+        options=RegistrationOptions(backend="torch", device="cpu", tto=TTOSchedule(iterations=6, px=96),
+                                    search=SearchOptions(enabled=False)),
+    )
+    registration = result.registration
+    assert registration.search is None and "search" not in result.views["pa"].stage_poses
+    assert set(registration.starts) == {"DICOM angles", "Init", "Init PA", "Init LAT", "Refine"}
+    assert registration.starts["DICOM angles"] < min(v for k, v in registration.starts.items() if k != "DICOM angles")
+    # Both views' Init imply one patient pose and Refine accepted nothing: one learned start, run once.
+    assert len({round(v, 4) for k, v in registration.starts.items() if k != "DICOM angles"}) == 1
+    assert set(registration.tto_runs) == set(registration.tto_objective) == {"DICOM angles", "Init"}
+    assert all(run.stopped_at is None and len(run.trace) == 7 for run in registration.tto_runs.values())
+    assert registration.chosen_start == "DICOM angles" == min(registration.tto_objective, key=registration.tto_objective.get)
+    assert result.tto is registration.tto_runs["DICOM angles"]
+    # The finalists are compared by the objective of the opacified vessels read after the coarse steps.
+    selection = registration.vessel_selection
+    judge = result.renderer if selection is None else make_renderer(selection.volume, result.renderer.engine)
+    final = sum(objective_value(judge, result.views[k].final_pose, result.views[k].prepared).loss for k in runs)
+    assert final == pytest.approx(registration.tto_objective["DICOM angles"], abs=1e-9)
+    start = sum(objective_value(judge, registration.rig[k], result.views[k].prepared).loss for k in runs)
+    assert final <= start + 1e-3
+    lat = result.views["lat"].quality
+    assert lat.flag != "ok" and any("reads this view as" in d for d in lat.reasons), lat
+    assert not any("reads this view as" in d for d in result.views["pa"].quality.reasons)
+
+
+def test_one_views_init_alone_is_a_start_when_the_other_view_is_far_off(phantom_case):
+    """PA's Init 2 deg / 3 mm off, the lateral's 70 mm off in its own plane: the fused Init inherits
+    the lateral's error, the PA Init alone does not; it wins the coarse steps of the TTO
+    tournament and the result, which lands within 2 mm (carotid mPCD) of the truth in both views."""
+    case = phantom_case
+    N, true, cta, runs = _read_phantom(case)
+    near_pa = _perturb(true["pa"], (1.0, -1.0, 1.0), (2.0, -1.0, 2.0))
+    far_lat = _perturb(true["lat"], (2.0, 0.0, 0.0), (0.0, 50.0, -50.0))
+    init = OracleInit([N @ isopose(C.VIEW_PA), N @ near_pa, N @ far_lat])
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    seen: list[float] = []
+    result = register_case(
+        cta, runs, models=oracle_models(init, OracleRefine([])), segmentation=labels.like(L.vessel_mask(labels.array).astype(np.uint8)),
+        options=RegistrationOptions(backend="torch", device="cpu", tto=TTOSchedule(px=96)),
+        progress=lambda stage, f, message: seen.append(f) if stage == "tto" else None,
+    )
+    # The tournament's progress rises steadily through every start's share to the end.
+    assert seen[-1] == 1.0 and all(b >= a for a, b in zip(seen, seen[1:]))
+    assert max(b - a for a, b in zip(seen, seen[1:])) < 0.05
+    registration = result.registration
+    assert registration.starts["Init PA"] < min(registration.starts["Init"], registration.starts["Init LAT"])
+    assert registration.chosen_start == "Init PA"
+    # The record names every start's ranking loss and where the ones not kept stopped.
+    record = build_record(result, runs)["registration"]
+    ranking = record["tto_ranking_loss"]
+    # The similarity search moved the fused Init (Refine accepted nothing): a start of its own.
+    assert set(ranking) == set(registration.tto_runs) == {"DICOM angles", "Init", "Init PA", "Init LAT", "Refine + search"}
+    assert ranking["Init PA"] == min(v for k, v in ranking.items() if k != "DICOM angles")
+    assert record["tto_stopped_at"] == {"Init": 16, "Init LAT": 16, "Refine + search": 16}
+    assert set(registration.tto_objective) == {"DICOM angles", "Init PA"}
+    points = load_truth(case / "cta.nii.gz").carotid_points_mm
+    for key in ("pa", "lat"):
+        run = runs[key]
+        error = evaluate_pose(result.views[key].final_pose, true[key], run.detector, run.angles.sod_mm, points)["mpcd_mm"]
+        assert error < 2.0, (key, error)
+
+
+def test_weak_image_evidence_keeps_the_networks_estimate(tmp_path):
+    """The shipped 128-px phantom case with its arteries given: every start's objective stays near 0 (the
+    runs hold little evidence), and the TTO's tournament once ended 44 mm off from a networks' estimate of
+    0.97 / 0.79 mm. Above ``WEAK_OBJECTIVE`` the networks' estimate is kept, and the record says why."""
+    pytest.importorskip("torch")
+    from geopose.register.cli import register_files
+    from geopose.register.trust import WEAK_OBJECTIVE
+
+    case = Path(__file__).resolve().parents[2] / "Resources" / "Testing" / "phantom_seed0_2mm"
+    labels = load_cta(case / "labels.nii.gz", check_hu=False)
+    segmentation = tmp_path / "vessels.nii.gz"
+    from geopose.cta import save_volume
+    save_volume(labels.like(L.vessel_mask(labels.array).astype(np.uint8)), segmentation)
+    record = register_files(case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", tmp_path / "out",
+                            segmentation=segmentation, options=RegistrationOptions(device="cpu", backend="torch"))
+    assert min(record["registration"]["tto_objective"].values()) > WEAK_OBJECTIVE
+    assert any("little image evidence" in note for note in record["notes"])
+    for key in ("pa", "lat"):
+        view = record["views"][key]
+        assert view["truth"]["final"]["mpcd_mm"] == pytest.approx(view["truth"]["search"]["mpcd_mm"])
+        assert view["truth"]["final"]["mpcd_mm"] < 2.0  # 0.97 / 0.79 measured
+        assert view["quality"]["flag"] != "ok"
