@@ -85,6 +85,8 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
         assert after["rotation_error_deg"] < before["rotation_error_deg"]
     record = build_record(result, runs, truth_metrics=metrics)
     assert record["schema_version"] == SCHEMA_VERSION
+    tto_work = record["work"]["tto"]
+    assert tto_work["renders"] > 0 and tto_work["ray_points"] > tto_work["rays"] > 0 and tto_work["ns_per_point"] > 0
     # The similarity search moved the refined patient pose to a higher mNCC and nearer the truth.
     search = record["registration"]["similarity_search"]
     assert search["mncc"] > search["start_mncc"] and search["moves"] and search["evaluations"] > 30

@@ -146,3 +146,26 @@ def test_cuda_matches_cpu():
     cpu = DRR(vol, aff, det)(pose)
     gpu = DRR(vol.cuda(), aff, det)(pose.to("cuda")).cpu()
     assert torch.allclose(cpu, gpu, rtol=1e-3, atol=1e-3)
+
+
+def test_both_kernels_count_the_same_work_inside_a_counting_block_only():
+    """render.work: renders, rays (pixels) and ray points (rays x samples per ray x channels), counted by
+    either kernel only while a block is open; the two kernels march the same samples."""
+    from conftest import blob_renderer
+    from geopose.render.renderer import TorchRenderer
+    from geopose.render.work import counting
+
+    numpy_renderer = blob_renderer()
+    torch_renderer = TorchRenderer(numpy_renderer.volume)
+    detector, pose = Detector.model().resized(32), isopose(C.VIEW_PA)
+    numpy_renderer.render(pose, detector)  # no block open: not counted anywhere
+    counts = []
+    for renderer in (numpy_renderer, torch_renderer):
+        with counting() as work:
+            renderer.render(np.stack([pose, pose]), detector, ("total", "cranium"))
+        counts.append((work.renders, work.rays, work.points))
+        samples = work.points // (work.rays * 2)
+        assert work.renders == 2 and work.rays == 2 * 32 * 32 and work.points == work.rays * 2 * samples
+        assert samples > 10  # a 192 mm wide volume crossed in steps of a few mm
+        assert work.as_dict(0.5)["ns_per_point"] == pytest.approx(5e8 / work.points, rel=1e-3)
+    assert counts[0] == counts[1]

@@ -20,6 +20,7 @@ from ..errors import InputError
 from ..nets.predictors import ModelSet, load_models, resolve_torch_device
 from ..options import TTO_PX_CPU, TTO_PX_CUDA, RegistrationOptions
 from ..render.renderer import Renderer, TorchRenderer, make_renderer
+from ..render.work import counting
 from ..volume import Volume
 from .case import PreparedCase, prepare_case
 from .progress import Monitor
@@ -87,19 +88,23 @@ class Engine:
 
 
 class StageClock:
-    """Seconds per stage (``times``), each measured to the end of its queued GPU work."""
+    """Seconds per stage (``times``), each measured to the end of its queued GPU work, and the rendering each
+    stage did (``work``: renders, rays, ray points and ns per point, ``render.work``)."""
 
     def __init__(self) -> None:
         self.start = time.perf_counter()
         self.times: dict[str, float] = {}
+        self.work: dict[str, dict] = {}
 
     @contextmanager
     def __call__(self, name: str, engine: Engine | None = None) -> Iterator[None]:
         t0 = time.perf_counter()
-        yield
-        if engine is not None:
-            engine.synchronize()
+        with counting() as work:
+            yield
+            if engine is not None:
+                engine.synchronize()
         self.times[name] = time.perf_counter() - t0
+        self.work[name] = work.as_dict(self.times[name])
 
     def total(self) -> dict[str, float]:
         """The stage times with ``total``, the seconds since the clock started."""

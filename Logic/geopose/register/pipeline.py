@@ -128,4 +128,5 @@ def register_case(
                                given_vessels=segmentation is not None, objective=options.objective)
     monitor.step("done", 1.0, "registration finished" + (" (" + notes[0] + ")" if notes else ""))
     return CaseRegistration(cta, case.labels_source, calibration, outcomes, tournament.result if tournament else None,
-                            clock.total(), options, engine.describe(options, case), registration, renderer, notes)
+                            clock.total(), options, engine.describe(options, case), registration, renderer, notes,
+                            work=clock.work)

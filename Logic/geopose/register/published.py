@@ -68,4 +68,5 @@ def register_published(
                                learned=learned, finals=finals, searched=False, given_vessels=segmentation is not None)
     monitor.step("done", 1.0, "registration finished" + (" (" + notes[0] + ")" if notes else ""))
     return CaseRegistration(cta, case.labels_source, calibration, outcomes, tto, clock.total(), options,
-                            engine.describe(options, case), registration, engine.renderer, notes)
+                            engine.describe(options, case), registration, engine.renderer, notes,
+                            work=clock.work)

@@ -19,6 +19,8 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 11: ``work``: per stage the renders, rays and ray points (samples x channels) both kernels did, and the
+#: stage's ns per point (``render/work.py``): what a stage's time is made of.
 #: 10: ``options`` is the options tree (``options.py``): the engine's settings at the top, each stage's in its
 #: group (``refine``, ``search``, ``tto``, ``objective``); ``options.tto.px`` was ``options.tto_px``,
 #: ``options.tto.iterations`` ``options.iterations``, ``options.refine.steps`` ``options.refine_steps``,
@@ -45,7 +47,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 10
+SCHEMA_VERSION = 11
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -233,6 +235,7 @@ def build_record(
         },
         "views": {key: _view_entry(case, v, runs[key]) for key, v in case.views.items()},
         "runtimes_s": case.runtimes_s,
+        "work": case.work,
     }
     if case.tto is not None:
         record["tto_trace"] = [

@@ -156,7 +156,7 @@ class CaseRegistration:
     """One registered case. ``renderer`` is the renderer that was used (it renders the CTA's
     channels for overlays and metrics); ``tto`` is None when no test-time optimisation ran;
     ``engine`` says which backend, device and render sizes were used; ``notes`` what the
-    user should know (e.g. a skipped stage)."""
+    user should know (e.g. a skipped stage); ``work`` the rendering each stage did (``render/work.py``)."""
 
     cta: Volume
     labels_source: dict
@@ -169,3 +169,4 @@ class CaseRegistration:
     registration: Registration
     renderer: "Renderer" = field(repr=False)
     notes: list[str] = field(default_factory=list)
+    work: dict[str, dict] = field(default_factory=dict)

@@ -31,6 +31,7 @@ from ..geometry.carm import ray_points_tensor
 from ..geometry.detector import Detector
 from ..geometry.rigid import RigidTransform, as_transform
 from ..volume import Volume
+from .work import count
 from .density import hu_to_density, label_channels
 
 __all__ = ["DRR", "CHUNK_SAMPLES"]
@@ -112,6 +113,7 @@ class DRR(nn.Module):
         chord_mm = ((hi - lo) * length_mm).detach()
         n = max(1, int(math.ceil(float(chord_mm.max()) / self.step_mm)))
         frac = ((torch.arange(n, device=dev, dtype=torch.float32) + 0.5) / n).to(self.density.dtype)
+        count(B, B * H * W, n, len(channels))
         # Sample x = s + (lo + (hi - lo) * frac) * seg = start + span * frac, per index axis.
         start = (s[:, None] + lo[..., None] * seg).reshape(B * H * W, 3).to(self.density.dtype)
         span = ((hi - lo)[..., None] * seg).reshape(B * H * W, 3).to(self.density.dtype)

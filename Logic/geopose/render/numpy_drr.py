@@ -16,6 +16,7 @@ import numpy as np
 
 from ..geometry.detector import Detector
 from ..geometry.poses import source_and_detector_points
+from .work import count
 
 __all__ = ["NumpyKernel", "CHUNK_SAMPLES"]
 
@@ -55,6 +56,7 @@ class NumpyKernel:
         chord_mm = (hi - lo) * np.linalg.norm(pix - src, axis=1)
         n = max(1, int(math.ceil(float(chord_mm.max()) / self.step_mm)))
         frac = ((np.arange(n) + 0.5) / n).astype(np.float32)
+        count(1, len(pix), n, len(channels))
         start = (s + lo[:, None] * seg).astype(np.float32)
         span = ((hi - lo)[:, None] * seg).astype(np.float32)
         values = [self._padded[c] for c in channels]
