@@ -234,7 +234,7 @@ def test_bad_clip_percentiles_are_refused_with_the_rule(bad):
     run, _, _ = _synthetic_head_run()
     with pytest.raises(ValueError, match="clip percentiles"):
         preprocess_dsa(run, tto_px=60, model_clip_percentiles=bad)
-    with pytest.raises(ValueError, match="clip percentiles"):
+    with pytest.raises(ValueError, match="model_clip_percentiles .*must"):
         RegistrationOptions(model_clip_percentiles=bad)
 
 
