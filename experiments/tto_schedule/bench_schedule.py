@@ -29,11 +29,13 @@ from geopose.register.biplane import view_poses  # noqa: E402
 from geopose.register.case import VIEW_KEYS  # noqa: E402
 from geopose.register.evaluate import carotid_mpcd  # noqa: E402
 from geopose.register.engine import torch_renderer_for  # noqa: E402
-from geopose.register.tto import tto_views  # noqa: E402
-from geopose.register.tto import test_time_optimise  # noqa: E402
+from geopose.register.tto import test_time_optimise, tto_views  # noqa: E402
 
+_DEFAULT = TTOSchedule()
 SCHEDULES = {
-    "default: 60 % at half size, peak 0.02 rad / 4 mm, common-axis search after 60 and 80 %": TTOSchedule(),
+    (f"default: {100 * _DEFAULT.coarse_fraction:.0f} % at half size, peak {_DEFAULT.rotation_lr_rad:g} rad / "
+     f"{_DEFAULT.translation_lr_mm:g} mm, common-axis search after "
+     + ", ".join(f"{100 * f:.0f}" for f in _DEFAULT.axis_search_at) + " %"): _DEFAULT,
     "no common-axis search": TTOSchedule(axis_search_at=()),
     "common-axis search after 60 % only": TTOSchedule(axis_search_at=(0.6,)),
     "common-axis search step 2 deg": TTOSchedule(axis_search_step_deg=2.0),
