@@ -38,7 +38,8 @@ from geopose.render.renderer import TorchRenderer  # noqa: E402
 #: (name, objective, schedule, one patient pose?)
 VARIANTS = (
     ("paper: raw DRR vs clipped MAP + Dice, per view (paper schedule)", PAPER_OBJECTIVE, PAPER_SCHEDULE, False),
-    ("silhouettes only (clipped DRR + Dice), one patient pose", Objective(vessel_weight=0.0), TTOSchedule(), True),
+    ("silhouettes only (DRR fitted to the MAP, clipped at half size; + Dice), one patient pose", Objective(vessel_weight=0.0),
+     TTOSchedule(), True),
     ("vessel weight 0.5, one patient pose, opacified vessels read", Objective(vessel_weight=0.5), TTOSchedule(), True),
     ("vessel weight 0.75, one patient pose, every CTA vessel compared (before 2026-12-02)",
      Objective(vessel_weight=0.75, read_opacified=False), TTOSchedule(), True),
