@@ -75,7 +75,7 @@ def main() -> int:
         *rows,
     ]
     publish("\n".join(lines), args.doc, "Lateral side: single image vs mirror-averaged logits",
-            "`experiments/view_side/bench_view_side.py`; the rule is described in the README (How it registers).")
+            "`experiments/view_side/bench_view_side.py`; the rule is described in docs/method.md.")
     return 0
 
 
