@@ -25,7 +25,7 @@ from geopose.nets.decoding import select_view
 from geopose.options import RegistrationOptions, TTOSchedule
 from geopose.register import register_case
 from geopose.render.density import hu_to_density
-from geopose.render.renderer import NumpyRenderer, TorchRenderer
+from geopose.render.renderer import NumpyRenderer, TorchRenderer, make_renderer
 from geopose.images import block_mean
 from geopose.render.volume import RenderVolume
 from geopose.resources import default_models_dir
@@ -50,6 +50,30 @@ def _small_volume() -> tuple[Volume, Volume, Volume]:
     affine[:3, :3] = N.euler_zyx_to_matrix(np.array([0.2, -0.1, 0.05])) @ affine[:3, :3]
     cta = Volume(hu, affine)
     return cta, cta.like((r < 1).astype(np.uint8)), cta.like(rod.astype(np.uint8))
+
+
+def test_masks_are_made_only_when_a_render_needs_them_and_the_level_gains_them_unchanged():
+    """A render of the total density alone builds a level without mask channels and computes no mask (the
+    vessel mask from a CTA takes seconds); the first render of a mask channel adds them to that level, its
+    total channel and crop unchanged, and every render equals one from a volume built with masks at once."""
+    cta, cranium, vessels = _small_volume()
+    made = []
+    lazy = RenderVolume(cta, {"cranium": lambda: made.append("cranium") or cranium,
+                              "vessels": lambda: made.append("vessels") or vessels})
+    eager = RenderVolume(cta, {"cranium": cranium, "vessels": vessels})
+    pose, det = isopose(C.VIEW_PA), Detector.model().resized(24)
+    for engine in ("numpy", "torch"):
+        ours, theirs = make_renderer(lazy, engine), make_renderer(eager, engine)
+        total = ours.render(pose, det, ("total",))
+        if engine == "numpy":
+            assert made == [] and not ours.level_for_pose(pose, det, masked=False).masked
+        np.testing.assert_array_equal(total, theirs.render(pose, det, ("total",)))
+        np.testing.assert_array_equal(ours.render(pose, det, ("total", "cranium", "vessels")),
+                                      theirs.render(pose, det, ("total", "cranium", "vessels")))
+    assert made == ["cranium", "vessels"]
+    for factors, level in lazy.levels.items():
+        assert level.masked and level.origin_blocks == eager.level(factors).origin_blocks
+        np.testing.assert_array_equal(level.density, eager.level(factors).density)
 
 
 def test_levels_are_the_density_block_averaged_and_cropped():

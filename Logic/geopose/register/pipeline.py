@@ -98,9 +98,11 @@ def register_case(
             search = similarity_search(renderer, case.model_targets(), X_learned, rig, render_px, options.search.schedule,
                                        monitor)
         estimate, X_learned, learned = SEARCHED_START, search.patient_pose, view_poses(search.patient_pose, rig)
-    vessel_evidence, tournament = case.vessel_evidence, None
-    notes += [] if vessel_evidence else [NO_VESSELS_NOTE]
-    with clock("tto", engine):
+    tournament = None
+    with clock("tto", engine):  # the CTA's masks are made here, at the first render that needs them
+        monitor.step("tto", 0.0, "the CTA's cranium and vessel masks")
+        vessel_evidence = case.vessel_evidence
+        notes += [] if vessel_evidence else [NO_VESSELS_NOTE]
         starts = candidate_starts(renderer, case.views, rig, init, {estimate: X_learned}, options.objective,
                                   vessel_evidence=vessel_evidence)
         if options.tto.iterations > 0 and engine.tto_renderer is None:

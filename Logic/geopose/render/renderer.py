@@ -58,11 +58,12 @@ class Renderer:
             raise ValueError(f"unknown render channel(s) {unknown}; channels are {CHANNELS}")
         return tuple(CHANNELS.index(c) for c in channels)
 
-    def level_for_pose(self, pose: np.ndarray, detector: Detector) -> Level:
-        """The level a render of ``pose`` (``(4, 4)`` or the first of a batch) on ``detector`` samples."""
+    def level_for_pose(self, pose: np.ndarray, detector: Detector, masked: bool = True) -> Level:
+        """The level a render of ``pose`` (``(4, 4)`` or the first of a batch) on ``detector`` samples
+        (``masked``: with the mask channels)."""
         source_mm = float(np.linalg.norm(np.asarray(pose, dtype=np.float64).reshape(-1, 4, 4)[0, :3, 3]))
         pixel_mm = footprint_mm(min(detector.spacing_mm), detector.sdd_mm, max(source_mm, 1.0))
-        return self.volume.level_for(pixel_mm * self.voxel_per_pixel)
+        return self.volume.level_for(pixel_mm * self.voxel_per_pixel, masked)
 
     def render(
         self,
@@ -79,8 +80,9 @@ class Renderer:
         single = poses.shape == (4, 4)
         poses = poses.reshape(-1, 4, 4)
         coarse = coarse_detector(detector, render_px)
-        level = self.level_for_pose(poses, coarse)
-        image = self._render_level(level, poses, coarse, self.channel_index(channels))
+        indices = self.channel_index(channels)
+        level = self.level_for_pose(poses, coarse, masked=any(indices))
+        image = self._render_level(level, poses, coarse, indices)
         if coarse is not detector:
             image = np.stack([resize_bilinear(im, detector.shape) for im in image])
         return image[0] if single else image
@@ -102,9 +104,12 @@ class NumpyRenderer(Renderer):
     def _render_level(self, level: Level, poses: np.ndarray, detector: Detector, channels: tuple[int, ...]) -> np.ndarray:
         from .numpy_drr import NumpyKernel
 
-        kernel = self._kernels.get(level.factors)
+        key = (level.factors, level.masked)
+        kernel = self._kernels.get(key)
         if kernel is None:
-            kernel = self._kernels[level.factors] = NumpyKernel(level.density, level.ijk_to_world, level.step_mm)
+            if level.masked:  # the level gained its masks: its total-only kernel is not used again
+                self._kernels.pop((level.factors, False), None)
+            kernel = self._kernels[key] = NumpyKernel(level.density, level.ijk_to_world, level.step_mm)
         return np.stack([kernel(p, detector, channels) for p in poses])
 
 
@@ -122,15 +127,18 @@ class TorchRenderer(Renderer):
 
     def drr(self, level: Level):
         """The torch DRR module of ``level`` (for differentiable renders)."""
-        drr = self._drrs.get(level.factors)
+        key = (level.factors, level.masked)
+        drr = self._drrs.get(key)
         if drr is None:
             import torch
 
             from .drr import DRR
 
+            if level.masked:  # the level gained its masks: its total-only module is not used again
+                self._drrs.pop((level.factors, False), None)
             density = torch.as_tensor(level.density, device=self.device)
-            drr = self._drrs[level.factors] = DRR(density, level.ijk_to_world, Detector.model(), step_mm=level.step_mm,
-                                                  channel_names=CHANNELS).to(self.device)
+            drr = self._drrs[key] = DRR(density, level.ijk_to_world, Detector.model(), step_mm=level.step_mm,
+                                        channel_names=CHANNELS[:level.density.shape[0]]).to(self.device)
         return drr
 
     def _render_level(self, level: Level, poses: np.ndarray, detector: Detector, channels: tuple[int, ...]) -> np.ndarray:

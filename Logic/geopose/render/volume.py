@@ -8,7 +8,10 @@ larger than its detector pixels at the volume centre (:meth:`RenderVolume.level_
 so the 96-px network renders of a 0.5 mm CTA sample a 2 mm grid and its 128-px TTO
 renders a 1 mm one. Levels are built on first use, slab by slab (memory stays at a
 few slabs of the full grid), and cached; the density scale is fixed by the full
-grid, so every level shows the same values. numpy only.
+grid, so every level shows the same values. A render of the total density alone gets
+a level without the mask channels, so the masks (the vessel mask computed from a CTA
+takes seconds) are made only when a render needs them; the level then gains them, its
+total channel and crop unchanged. numpy only.
 """
 
 from __future__ import annotations
@@ -52,6 +55,11 @@ class Level:
     ijk_to_world: np.ndarray
     factors: tuple[int, int, int]
     origin_blocks: tuple[int, int, int] = (0, 0, 0)
+
+    @property
+    def masked(self) -> bool:
+        """Whether the mask channels were built (else ``density`` holds the total channel alone)."""
+        return self.density.shape[0] == len(CHANNELS)
 
     @property
     def spacing_mm(self) -> tuple[float, float, float]:
@@ -130,36 +138,53 @@ class RenderVolume:
             out.append(f)
         return tuple(out)
 
-    def level_for(self, voxel_mm: float) -> Level:
+    def level_for(self, voxel_mm: float, masked: bool = True) -> Level:
         """The coarsest level whose voxels are no larger than ``voxel_mm`` (e.g. a pixel's footprint)."""
-        return self.level(self.factors_for(voxel_mm))
+        return self.level(self.factors_for(voxel_mm), masked)
 
-    def level(self, factors: tuple[int, int, int] = (1, 1, 1)) -> Level:
-        """The level of block ``factors`` (i, j, k), built on first use."""
+    def level(self, factors: tuple[int, int, int] = (1, 1, 1), masked: bool = True) -> Level:
+        """The level of block ``factors`` (i, j, k), built on first use; ``masked``: with the mask channels
+        (else it may hold the total channel alone, :attr:`Level.masked`)."""
         factors = tuple(int(f) for f in factors)
-        if factors not in self._levels:
-            self._levels[factors] = self._build(factors)
-        return self._levels[factors]
+        level = self._levels.get(factors)
+        if level is None:
+            level = self._levels[factors] = self._build(factors, masked)
+        elif masked and not level.masked:
+            level = self._levels[factors] = self._with_masks(level)
+        return level
 
     @property
     def levels(self) -> dict[tuple[int, int, int], Level]:
         """The levels built so far."""
         return dict(self._levels)
 
-    def _build(self, factors: tuple[int, int, int]) -> Level:
+    def _channels(self, factors: tuple[int, int, int], masked: bool, total: bool = True) -> np.ndarray:
+        """Block means ``(C, K', J', I')`` of the whole grid: the total channel (``total``) and, when ``masked``,
+        the density inside each mask."""
         fi, fj, fk = factors
         K = self.cta.array.shape[0]
-        masks = [self.mask(name) for name in CHANNELS[1:]]
+        masks = [self.mask(name) for name in CHANNELS[1:]] if masked else []
         step = SLAB_SLICES * fk
-        parts: list[list[np.ndarray]] = [[] for _ in CHANNELS]
+        parts: list[list[np.ndarray]] = [[] for _ in range(int(total) + len(masks))]
         for k0 in range(0, K, step):
             k1 = min(K, k0 + step)
             dens = self.density_slab(k0, k1)
-            parts[0].append(block_mean(dens, (fk, fj, fi)))
-            for c, m in enumerate(masks, start=1):
+            if total:
+                parts[0].append(block_mean(dens, (fk, fj, fi)))
+            for c, m in enumerate(masks, start=int(total)):
                 slab = dens * m[k0:k1] if m is not None else np.zeros_like(dens)
                 parts[c].append(block_mean(slab, (fk, fj, fi)))
-        density = np.stack([np.concatenate(p, axis=0) for p in parts])
+        return np.stack([np.concatenate(p, axis=0) for p in parts])
+
+    def _with_masks(self, level: Level) -> Level:
+        """``level`` with its mask channels built, on its crop."""
+        (k0, j0, i0), (_, K, J, I) = level.origin_blocks, level.density.shape
+        masks = self._channels(level.factors, True, total=False)[:, k0:k0 + K, j0:j0 + J, i0:i0 + I]
+        return replace(level, density=np.ascontiguousarray(np.concatenate((level.density, masks))))
+
+    def _build(self, factors: tuple[int, int, int], masked: bool = True) -> Level:
+        fi, fj, fk = factors
+        density = self._channels(factors, masked)
         # Crop to the box holding density (one empty voxel kept around it).
         occupied = density[0] > 0
         lo = np.zeros(3, dtype=int)
@@ -192,6 +217,8 @@ class RenderVolume:
         kji = np.argwhere(keep)
         values = out._scale.apply(self.cta.array[tuple(kji.T)])
         for factors, level in self._levels.items():
+            if not level.masked:  # built for the total channel alone: the new volume builds its own when needed
+                continue
             density = level.density.copy()
             density[CHANNELS.index("vessels")] = 0.0
             if len(kji):  # a block's mean over the full-grid voxels it holds (edge blocks hold fewer)
