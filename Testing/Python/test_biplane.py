@@ -10,9 +10,7 @@ import pytest
 from register_helpers import RIG, _patient, _ray, _rotation
 
 from geopose.geometry import invert
-from geopose.geometry.detector import AP_REORIENT
 from geopose.geometry.poses import rotation_angle_rad
-from geopose.metrics.measures import pose_error_components
 from geopose.options import TTOSchedule
 from geopose.register.biplane import (
     Observability,
@@ -115,27 +113,3 @@ def test_part_way_scales_the_turn_and_the_shift():
         0.5 * rotation_angle_rad(Y[:3, :3] @ X[:3, :3].T), rel=1e-9)
     np.testing.assert_allclose(half[:3, 3], (X[:3, 3] + Y[:3, 3]) / 2, atol=1e-12)
 
-
-def test_pose_error_components_split_by_the_true_camera_axes():
-    true = RIG["pa"]
-    cam = true @ AP_REORIENT
-    # Move the camera 5 mm along its central ray (depth) and 3 mm along its image x axis.
-    moved = true.copy()
-    moved[:3, 3] += 5.0 * cam[:3, 2] + 3.0 * cam[:3, 0]
-    parts = pose_error_components(moved, true)
-    assert parts["depth_mm"] == pytest.approx(5.0, abs=1e-9) and parts["in_plane_mm"] == pytest.approx(3.0, abs=1e-9)
-    assert parts["in_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-9)
-    # Spin the camera 4 deg about its central ray through the source: in-plane rotation only (and the
-    # CTA centre swings in the image plane, not in depth).
-    spun = true.copy()
-    spun[:3, :3] = _rotation(cam[:3, 2], 4.0) @ true[:3, :3]
-    parts = pose_error_components(spun, true)
-    assert parts["in_plane_rotation_deg"] == pytest.approx(4.0, abs=1e-6)
-    assert parts["out_of_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
-    assert parts["depth_mm"] == pytest.approx(0.0, abs=1e-6)
-    # Tilt it 3 deg about its image x axis through the source: out-of-plane rotation only.
-    tilted = true.copy()
-    tilted[:3, :3] = _rotation(cam[:3, 0], 3.0) @ true[:3, :3]
-    parts = pose_error_components(tilted, true)
-    assert parts["out_of_plane_rotation_deg"] == pytest.approx(3.0, abs=1e-6)
-    assert parts["in_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-6)

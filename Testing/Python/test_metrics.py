@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from register_helpers import RIG, _rotation
+
 from geopose.contract import MNCC_PATCH_PX, MODEL_SDD_MM
+from geopose.geometry.detector import AP_REORIENT
 from geopose.geometry.poses import isopose, pose_from_params
 from geopose.metrics import (
     cldice,
@@ -24,6 +27,7 @@ from geopose.metrics import similarity as S
 from geopose.metrics.losses import local_ncc_similarity as local_ncc
 from geopose.metrics.losses import mncc_similarity as mncc
 from geopose.metrics.losses import ncc_similarity as ncc
+from geopose.metrics.measures import pose_error_components
 
 
 def smooth_image(batch: int = 2, size: int = 48, seed: int = 0) -> torch.Tensor:
@@ -214,3 +218,28 @@ def test_view_accuracy():
         view_accuracy([3], [1])
     with pytest.raises(ValueError, match="same non-zero number"):
         view_accuracy([0, 1], [1])
+
+
+def test_pose_error_components_split_by_the_true_camera_axes():
+    true = RIG["pa"]
+    cam = true @ AP_REORIENT
+    # Move the camera 5 mm along its central ray (depth) and 3 mm along its image x axis.
+    moved = true.copy()
+    moved[:3, 3] += 5.0 * cam[:3, 2] + 3.0 * cam[:3, 0]
+    parts = pose_error_components(moved, true)
+    assert parts["depth_mm"] == pytest.approx(5.0, abs=1e-9) and parts["in_plane_mm"] == pytest.approx(3.0, abs=1e-9)
+    assert parts["in_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-9)
+    # Spin the camera 4 deg about its central ray through the source: in-plane rotation only (and the
+    # CTA centre swings in the image plane, not in depth).
+    spun = true.copy()
+    spun[:3, :3] = _rotation(cam[:3, 2], 4.0) @ true[:3, :3]
+    parts = pose_error_components(spun, true)
+    assert parts["in_plane_rotation_deg"] == pytest.approx(4.0, abs=1e-6)
+    assert parts["out_of_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert parts["depth_mm"] == pytest.approx(0.0, abs=1e-6)
+    # Tilt it 3 deg about its image x axis through the source: out-of-plane rotation only.
+    tilted = true.copy()
+    tilted[:3, :3] = _rotation(cam[:3, 0], 3.0) @ true[:3, :3]
+    parts = pose_error_components(tilted, true)
+    assert parts["out_of_plane_rotation_deg"] == pytest.approx(3.0, abs=1e-6)
+    assert parts["in_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
