@@ -80,13 +80,15 @@ SLICER_REQUIREMENTS = read_requirements("slicer")
 #: and the oldest Python PyTorch is installed on (the line's marker: Slicer 5.10 and later).
 TORCH_REQUIREMENT, TORCH_MINIMUM_PYTHON = _torch_requirement()
 #: What the test-time optimisation adds, told to a user without PyTorch before it is offered. Numbers:
-#: docs/benchmark/bench.md (40 held-out phantoms, each with its vessel label map; 2 CPU cores).
+#: docs/benchmark/bench.md (42 held-out phantoms, 2 mm; the user's path: no segmentation given, rows "biplane:
+#: greedy Refine + search" and "+ 25 TTO"; with the phantoms' labels given: the "upper bound (truth masks)" row);
+#: the time: the 1 mm demo phantom on the 2-core VM (docs/pipeline_benchmark.md, 2026-12-04).
 TTO_BENEFIT = (
     "Without PyTorch, GeoPose runs Init, Refine and the similarity search and skips the test-time "
-    "optimisation (TTO), which refines both poses against the DSA runs. On 40 held-out phantom cases the "
-    "TTO took the mean carotid error at the detector from 3.0 mm to 0.9 mm, for about 21 s more per "
-    "registration on a 2-core CPU (less on a GPU). Without a vessel segmentation the TTO compares the "
-    "vessels a contrast threshold finds in the CTA instead; the project has not measured its accuracy then."
+    "optimisation (TTO), which refines both poses against the DSA runs. On 42 held-out phantom cases registered "
+    "from the CTA and the two runs alone (vessels found in the CTA by GeoPose), the TTO took the mean carotid "
+    "error at the detector from 3.3 mm to 2.9 mm; given each case's own vessel segmentation it reached 1.0 mm "
+    "(an upper bound). It adds about 15-20 s per registration on a 2-core CPU (less on a GPU)."
 )
 
 
@@ -133,7 +135,8 @@ def torch_supported() -> bool:
 
 
 def torch_available() -> bool:
-    """Whether PyTorch at :data:`TORCH_REQUIREMENT` or newer imports here (a broken install counts as missing)."""
+    """Whether PyTorch at :data:`TORCH_REQUIREMENT` or newer imports here (a broken install counts as missing): the
+    one check of the Slicer module and of the registration engine."""
     if unmet(["torch" + TORCH_REQUIREMENT]):
         return False
     try:

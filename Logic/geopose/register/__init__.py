@@ -11,7 +11,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
     {
         "calibration": ("calibrate", "calibrated_init", "render_model_view"),
         "case": ("VIEW_KEYS", "PreparedCase", "prepare_case"),
-        "engine": ("NO_TORCH_TTO_NOTE", "resolve_engine", "torch_available"),
+        "engine": ("NO_TORCH_TTO_NOTE", "resolve_engine"),
         "pipeline": ("register_case",),
         "progress": ("ConsoleProgress", "Monitor", "RegistrationCancelled"),
         "quality": ("Quality", "assess"),

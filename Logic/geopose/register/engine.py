@@ -15,6 +15,7 @@ from typing import Iterator, Mapping
 
 import numpy as np
 
+from ..dependencies import torch_available
 from ..dsa import DSARun
 from ..errors import InputError
 from ..nets.predictors import ModelSet, load_models, resolve_torch_device
@@ -25,21 +26,11 @@ from ..volume import Volume
 from .case import PreparedCase, prepare_case
 from .progress import Monitor
 
-__all__ = ["NO_TORCH_TTO_NOTE", "Engine", "StageClock", "resolve_engine", "start_case", "torch_available",
-           "torch_renderer_for"]
+__all__ = ["NO_TORCH_TTO_NOTE", "Engine", "StageClock", "resolve_engine", "start_case", "torch_renderer_for"]
 
 #: Said (progress, record, Slicer table) when the test-time optimisation cannot run.
 NO_TORCH_TTO_NOTE = ("PyTorch is not installed: calibration, Init and Refine ran on onnxruntime; the test-time "
                      "optimisation needs PyTorch and was skipped")
-
-
-def torch_available() -> bool:
-    """Whether PyTorch imports here (a broken install counts as missing)."""
-    try:
-        import torch  # noqa: F401
-    except (ImportError, OSError):
-        return False
-    return True
 
 
 def torch_renderer_for(renderer: Renderer) -> TorchRenderer | None:
