@@ -6,7 +6,7 @@ The engine's settings at the top, each stage's in its own group: ``refine`` (:cl
 (:func:`setting`); the ``geopose`` command line's flags (:func:`setting_paths`), the Slicer parameter
 node's defaults and the result record's ``options`` are generated from this tree. Built by keyword,
 validated once on construction, frozen, so no caller's options change behind its back;
-``replace("tto.iterations", 10)``-style changes go through :meth:`RegistrationOptions.replace`.
+``replace(**{"tto.iterations": 10})`` changes a setting by its path (:meth:`RegistrationOptions.replace`).
 Imports nothing beyond the standard library (the Slicer module reads its defaults before the
 dependencies are installed).
 """
@@ -68,8 +68,11 @@ def setting(default: Any, doc: str, *, kind: str | None = None, bounds: tuple | 
 def _checked(name: str, value: Any, meta: dict) -> Any:
     """``value`` of the setting ``name`` checked against its ``meta`` (:func:`setting`) and normalised."""
     kind, remedy = meta["kind"], meta["remedy"]
-    if value is None:
-        return None
+    if kind == "device":
+        device = str(value)
+        if device not in DEVICES and not (device.startswith("cuda:") and device[5:].isdigit()):
+            raise InputError(f"{name} must be auto, cpu, cuda or cuda:N, got {value!r}")
+        return device
     if kind == "bool":
         if not isinstance(value, bool):
             raise InputError(f"{name} must be True or False, got {value!r}")
@@ -97,7 +100,11 @@ class _Group:
         for f in dataclasses.fields(self):
             if "kind" in f.metadata:
                 path = f"{self.group}.{f.name}" if self.group else f.name
-                object.__setattr__(self, f.name, _checked(path, getattr(self, f.name), f.metadata))
+                value = getattr(self, f.name)
+                if value is None and f.default is not None:
+                    raise InputError(f"{path} must be given (its default is {f.default!r}), got None")
+                if value is not None:
+                    object.__setattr__(self, f.name, _checked(path, value, f.metadata))
 
 
 @dataclass(frozen=True)
@@ -221,21 +228,10 @@ class RegistrationOptions(_Group):
     objective: Objective = field(default_factory=Objective)
 
     def __post_init__(self) -> None:
-        device = str(self.device)
-        if device not in DEVICES and not (device.startswith("cuda:") and device[5:].isdigit()):
-            raise InputError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
-        object.__setattr__(self, "device", device)
         super().__post_init__()
         for f in dataclasses.fields(self):
             if "kind" not in f.metadata and not isinstance(getattr(self, f.name), type(f.default_factory())):
                 raise InputError(f"{f.name} must be a {type(f.default_factory()).__name__}, got {getattr(self, f.name)!r}")
-
-    def get(self, path: str) -> Any:
-        """The setting at the dotted ``path`` (e.g. ``"tto.iterations"``)."""
-        node: Any = self
-        for part in path.split("."):
-            node = getattr(node, part)
-        return node
 
     def replace(self, **changes: Any) -> "RegistrationOptions":
         """A copy with ``changes`` by dotted path (``**{"tto.iterations": 10}``) or top-level name

@@ -295,6 +295,9 @@ def test_every_setting_has_one_flag_and_unknown_paths_are_refused():
     assert len(flags) == len(set(flags)) and {"--iterations", "--refine-steps", "--tto-px", "--search"} <= set(flags)
     with pytest.raises(InputError, match="unknown registration option"):
         RegistrationOptions().replace(**{"tto.steps": 3})
+    with pytest.raises(InputError, match="tto.iterations must be given"):
+        TTOSchedule(iterations=None)  # None only where the data decide (tto.px, render_px, ...)
+    assert RegistrationOptions().replace(**{"tto.px": None, "device": "cuda:1"}).device == "cuda:1"
 
 
 @pytest.mark.parametrize("array, message", [

@@ -22,6 +22,7 @@ from ..dsa import DSARun
 from ..errors import InputError
 from ..geometry.frames import pose_to_patient
 from ..geometry.poses import pose_from_carm_angles
+from ..register.case import VIEW_KEYS
 from ..volume import Volume
 from .outputs import camera_node, frustum_model_node, pose_transform_node, projected_segmentation_node, result_table_node
 from .plane import dsa_sequence_node, frames_from_node, geometry_from_attributes, plane_volume_node, proxy_sequence, set_geometry_attributes
@@ -33,7 +34,6 @@ __all__ = [
     "read_inputs", "result_rows", "result_nodes", "result_summary", "register_nodes",
 ]
 
-VIEW_KEYS = ("pa", "lat")
 VIEW_TITLES = {"pa": "PA", "lat": "LAT"}
 #: Output node key suffixes per view: ``paPose``, ``latMAP``, ... (``DSABrowser``: the DSA sequence's browser).
 OUTPUT_KEYS = ("Pose", "Camera", "Frustum", "DSA", "DSABrowser", "MAP", "Projection")
