@@ -11,7 +11,8 @@ the sides are in doubt (validation phantom 6011: a correct CTA beat its mirror i
 same CTA with its sides swapped by -0.002). Needs PyTorch (the TTO) and a given vessel
 segmentation: without vessels there is nothing to tell the sides by, and on a vessel mask computed
 from the CTA (veins and bone included) correct CTAs of phantoms 6000, 6001 and 5001 beat their mirror
-image by -0.04 to +0.01 only, so the test is not run.
+image by -0.04 to +0.01 only, and no variant of the test separates them
+(experiments/mirror/mirror.md), so the test is not run.
 """
 
 from __future__ import annotations
