@@ -163,6 +163,11 @@ class TTOSchedule(_Group):
     #: (``axis_search_at``) corrects it (experiments/tto_schedule/tto_schedule.md).
     rotation_prior_per_rad2: float = setting(10.0, "weight (per rad^2) of the prior holding the turn about the common "
                                              "axis", bounds=(0.0, 1e6))
+    #: On validation phantoms 6010-6029 (2 mm, default path) the tournament's winner was the DICOM angles'
+    #: start or the best other by its objective in 19 of 20; trying those two instead of all five distinct
+    #: starts: TTO 14.3 -> 10.6 s, carotid mPCD 2.33 -> 2.20 mm (docs/pipeline_benchmark.md, 2026-12-04).
+    starts: int = setting(2, "candidate starts that run the coarse steps: the DICOM angles' and the best others by "
+                          "their objective", bounds=(1, 100))
     finalists: int = setting(2, "starts that run on after the coarse steps", bounds=(1, 100))
     final_lr_fraction: float = setting(0.1, "learning rate the OneCycle anneals to, as a share of the peak",
                                        bounds=(1e-9, 1.0))

@@ -1,6 +1,7 @@
 """The test-time optimisation of one patient pose from several starts, one result kept (ours).
 
-Every distinct candidate start (``starts.py``) runs the TTO's coarse steps; there the vessels the
+The DICOM angles' start and the best other distinct candidate starts by their objective (``starts.py``;
+``options.TTOSchedule.starts`` in all) run the TTO's coarse steps; there the vessels the
 runs show opacified are read at the pose of the start of lowest loss, and the runs near it compare
 those alone from then on (``opacified.py``); the DICOM angles' run and the best other by the loss
 there (``options.TTOSchedule.finalists`` in all) run to the end. The finalists are compared by one
@@ -26,7 +27,7 @@ from .progress import Monitor
 from .starts import DICOM_START, Starts
 from .tto import TTOImages, TTOResult, TTORun, TTOView, restrict_to_opacified, tto_views
 
-__all__ = ["OBJECTIVE_TIE", "Tournament", "chosen_result", "optimise_from_starts", "run_tournament"]
+__all__ = ["OBJECTIVE_TIE", "Tournament", "chosen_result", "optimise_from_starts", "run_tournament", "tried_starts"]
 
 #: Objective difference (summed over both views) within which two TTO results tie; on a tie the
 #: DICOM angles' result is kept. Finalists' objectives on the 40 benchmark phantoms differ by at
@@ -107,12 +108,20 @@ class Tournament:
         return self.runs[self.chosen]
 
 
+def tried_starts(starts: Starts, count: int) -> dict[str, np.ndarray]:
+    """The distinct starts (``Starts.distinct``) the TTO runs: the DICOM angles' and the ``count - 1`` others
+    of lowest objective, in their given order."""
+    distinct = starts.distinct()
+    others = sorted((k for k in distinct if k != DICOM_START), key=starts.objectives.get)[:max(count - 1, 0)]
+    return {k: X for k, X in distinct.items() if k == DICOM_START or k in others}
+
+
 def run_tournament(renderer: Renderer, tto_renderer: TorchRenderer, views: Mapping[str, PreparedDSA], starts: Starts,
                    rig: Mapping[str, np.ndarray], schedule: TTOSchedule, objective: Objective, monitor: Monitor) -> Tournament:
     """The TTO (``schedule``, ``objective``) from each distinct start, the DICOM angles' among the finalists;
     the finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
-    runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), starts.distinct(), rig,
-                                schedule, keep=(DICOM_START,), objective=objective, monitor=monitor)
+    runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), tried_starts(starts, schedule.starts),
+                                rig, schedule, keep=(DICOM_START,), objective=objective, monitor=monitor)
     selection = next((r.vessel_selection for r in runs.values() if r.vessel_selection), None)
     judge = renderer if selection is None else make_renderer(selection.volume, renderer.engine,
                                                                   str(getattr(renderer, "device", "cpu")))
