@@ -170,6 +170,16 @@ def _dilate_mm(mask: np.ndarray, radius_mm: float, spacing_mm) -> np.ndarray:
     return sitk.GetArrayFromImage(sitk.BinaryDilate(image, _radius_vox(radius_mm, spacing_mm), sitk.sitkBall)).astype(bool)
 
 
+def _eroded_by_ball(mask: np.ndarray, radius_vox: list[int]) -> np.ndarray:
+    """``mask`` ([k, j, i] bool) eroded by ``sitk.BinaryErode``'s ball of ``radius_vox`` (i, j, k), voxel for
+    voxel (outside the grid counts as inside), from a Euclidean distance map in the units of that ball's
+    radii (``r + 0.5`` voxels per axis): at 1 mm, 256^3, radius 5: 0.5 s against the filter's 1.1 s."""
+    outside = sitk.GetImageFromArray((~np.asarray(mask, dtype=bool)).astype(np.uint8))
+    outside.SetSpacing([1.0 / (r + 0.5) for r in radius_vox])
+    d2 = sitk.SignedMaurerDistanceMap(outside, insideIsPositive=False, squaredDistance=True, useImageSpacing=True)
+    return sitk.GetArrayFromImage(d2) >= 1.0
+
+
 def _small_holes_slicewise(mask: np.ndarray, axis: int, max_voxels: float) -> np.ndarray:
     """The 2D holes of at most ``max_voxels`` voxels in every slice of ``mask`` ([k, j, i] bool) taken
     across ``axis`` (as :func:`_fill_slicewise`, holes only, size-limited)."""
@@ -193,8 +203,7 @@ def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, floa
     # air inside the head (nasal cavity, paranasal sinuses, pharynx): its thin bony walls blur into the lumen range
     near_air = _dilate_mm(body & (a < BODY_HU), AIR_MARGIN_MM, spacing_mm)
     # lumen lies below the skin: what is in the lumen range at the body's surface is skin, a head holder or a table
-    body = sitk.GetArrayFromImage(sitk.BinaryErode(sitk.GetImageFromArray(body.astype(np.uint8)),
-                                                   _radius_vox(BODY_SURFACE_MM, spacing_mm), sitk.sitkBall)).astype(bool)
+    body = _eroded_by_ball(body, _radius_vox(BODY_SURFACE_MM, spacing_mm))
     in_plane_mm2 = float(np.prod([s for n, s in enumerate(spacing_mm) if n != 2 - axis]))
     bone = a > DENSE_BONE_HU
     bone |= _small_holes_slicewise(bone, axis, MARROW_MAX_MM2 / in_plane_mm2)
