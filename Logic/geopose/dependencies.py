@@ -88,7 +88,7 @@ TTO_BENEFIT = (
     "optimisation (TTO), which refines both poses against the DSA runs. On 42 held-out phantom cases registered "
     "from the CTA and the two runs alone (vessels found in the CTA by GeoPose), the TTO took the mean carotid "
     "error at the detector from 3.3 mm to 2.9 mm; given each case's own vessel segmentation it reached 1.0 mm "
-    "(an upper bound). It adds about 15-18 s per registration on a 2-core CPU (less on a GPU)."
+    "(an upper bound). It adds about 12-13 s per registration on a 2-core CPU (less on a GPU)."
 )
 
 

@@ -74,7 +74,7 @@ def test_common_axis_search_turns_the_patient_back(phantom_case):
     held = run_tto(renderer, views, TTOSchedule(axis_search_at=()), rig=rig)
     searched = run_tto(renderer, views, TTOSchedule(), rig=rig)
     assert held.axis_searches == () and turn_deg(held) > 2.5, turn_deg(held)  # measured: 3.0 deg
-    assert [s["iteration"] for s in searched.axis_searches] == [15, 18, 20, 22]
+    assert [s["iteration"] for s in searched.axis_searches] == [15, 20]
     # turned back, not further (measured -1.8 deg on the realistic phantom world, below -2 on the cleaner one)
     assert searched.axis_searches[0]["chosen_deg"] < -1.5, searched.axis_searches
     assert turn_deg(searched) <= 2.0, (turn_deg(searched), searched.axis_searches)  # measured: 1.5 deg
