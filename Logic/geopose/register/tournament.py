@@ -118,8 +118,9 @@ def tried_starts(starts: Starts, count: int) -> dict[str, np.ndarray]:
 
 def run_tournament(renderer: Renderer, tto_renderer: TorchRenderer, views: Mapping[str, PreparedDSA], starts: Starts,
                    rig: Mapping[str, np.ndarray], schedule: TTOSchedule, objective: Objective, monitor: Monitor) -> Tournament:
-    """The TTO (``schedule``, ``objective``) from each distinct start, the DICOM angles' among the finalists;
-    the finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
+    """The TTO (``schedule``, ``objective``) from the starts :func:`tried_starts` picks (``schedule.starts``), the
+    DICOM angles' among the finalists; the finalists judged by the objective rendered through ``renderer`` (the
+    engine's own kernel)."""
     runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), tried_starts(starts, schedule.starts),
                                 rig, schedule, keep=(DICOM_START,), objective=objective, monitor=monitor)
     selection = next((r.vessel_selection for r in runs.values() if r.vessel_selection), None)
