@@ -195,13 +195,18 @@ def _image_spread(png: bytes) -> tuple[float, int]:
     return float(rgb.mean(axis=-1).std()), len(np.unique(rgb.reshape(-1, 3), axis=0))
 
 
-def _progress_samples(page, until, timeout_s: float) -> list[tuple[float, str]]:
-    """(time, progress text) whenever the page's progress text changes, until ``until()`` is true."""
+def _progress_text(page) -> str:
+    return page.locator("#progress-text").inner_text() if page.locator("#progress-text").count() else ""
+
+
+def _progress_samples(page, until, timeout_s: float, stale: str = "") -> list[tuple[float, str]]:
+    """(time, progress text) whenever the page's progress text changes, until ``until()`` is true; ``stale``:
+    the text an earlier run left, not sampled until the page has shown another."""
     samples: list[tuple[float, str]] = []
     deadline = time.perf_counter() + timeout_s
     while time.perf_counter() < deadline and not until():
-        text = page.locator("#progress-text").inner_text() if page.locator("#progress-text").count() else ""
-        if text and (not samples or samples[-1][1] != text):
+        text = _progress_text(page)
+        if text and (not samples or samples[-1][1] != text) and (samples or text != stale):
             samples.append((time.perf_counter(), text))
         page.wait_for_timeout(100)
     return samples
@@ -239,8 +244,10 @@ def test_register_cancel_and_review_the_demo_case_in_chromium(chromium, phantom_
         assert not (out / "run-1" / "result.json").exists()
 
         # the registration: progress keeps moving while it runs, then the result
+        cancelled_run = _progress_text(page)  # the cancelled run's last progress, until the new run's first
         page.click("#btn-register")
-        samples = _progress_samples(page, lambda: page.locator(".quality-flag").count() > 0, timeout_s=400)
+        samples = _progress_samples(page, lambda: page.locator(".quality-flag").count() > 0, timeout_s=400,
+                                    stale=cancelled_run)
         page.wait_for_selector(".quality-flag", timeout=60000)
         times = [t for t, _ in samples]
         gaps = np.diff(times)
