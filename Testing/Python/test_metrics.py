@@ -230,16 +230,12 @@ def test_pose_error_components_split_by_the_true_camera_axes():
     assert parts["depth_mm"] == pytest.approx(5.0, abs=1e-9) and parts["in_plane_mm"] == pytest.approx(3.0, abs=1e-9)
     assert parts["in_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-9)
     # Spin the camera 4 deg about its central ray through the source: in-plane rotation only (and the
-    # CTA centre swings in the image plane, not in depth).
-    spun = true.copy()
-    spun[:3, :3] = _rotation(cam[:3, 2], 4.0) @ true[:3, :3]
-    parts = pose_error_components(spun, true)
-    assert parts["in_plane_rotation_deg"] == pytest.approx(4.0, abs=1e-6)
-    assert parts["out_of_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
-    assert parts["depth_mm"] == pytest.approx(0.0, abs=1e-6)
-    # Tilt it 3 deg about its image x axis through the source: out-of-plane rotation only.
-    tilted = true.copy()
-    tilted[:3, :3] = _rotation(cam[:3, 0], 3.0) @ true[:3, :3]
-    parts = pose_error_components(tilted, true)
-    assert parts["out_of_plane_rotation_deg"] == pytest.approx(3.0, abs=1e-6)
-    assert parts["in_plane_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+    # CTA centre swings in the image plane, not in depth). Tilt it 3 deg about its image x axis through
+    # the source: out-of-plane rotation only.
+    for axis, deg, expected in ((cam[:3, 2], 4.0, {"in_plane_rotation_deg": 4.0, "out_of_plane_rotation_deg": 0.0, "depth_mm": 0.0}),
+                                (cam[:3, 0], 3.0, {"out_of_plane_rotation_deg": 3.0, "in_plane_rotation_deg": 0.0})):
+        turned = true.copy()
+        turned[:3, :3] = _rotation(axis, deg) @ true[:3, :3]
+        parts = pose_error_components(turned, true)
+        for name, value in expected.items():
+            assert parts[name] == pytest.approx(value, abs=1e-6), (deg, name, parts)
