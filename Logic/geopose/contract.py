@@ -57,8 +57,9 @@ MAP_CLIP_PERCENTILES: Final = (25.0, 75.0)
 #: DSA cranium mask) between which the opacified vessels stand out of the noise (experiments/tto_objective/objective.md).
 VESSEL_CLIP_PERCENTILES: Final = (90.0, 99.9)
 #: Ours: the vessel image averages the frames weighted by the run's own bolus curve (a temporal matched
-#: filter, ``dsa.preprocess.bolus_weighted_mean``), the curve read from the pixels whose temporal mean is at
-#: or above this percentile over the DSA cranium mask (experiments/tto_objective/objective_real_heads.md).
+#: filter, ``dsa.preprocess.bolus_weighted_mean``), the curve read from the pixels whose temporal mean of fine
+#: detail is at or above this percentile over the DSA cranium mask (experiments/tto_objective/objective_real_heads.md,
+#: experiments/vessel_image/vessel_image.md).
 BOLUS_PIXEL_PERCENTILE: Final = 98.0
 BILATERAL_SPATIAL_SIGMA_PX: Final = 11.0
 BILATERAL_RANGE_SIGMA: Final = 11.0

@@ -66,6 +66,28 @@ def test_bolus_weighted_mean_keeps_the_vessels_and_drops_the_frames_without_cont
     assert np.argmax(weighted.mean(axis=0)) in (30, 31, 32)
 
 
+def test_bolus_weighted_mean_follows_the_arteries_not_a_blush_that_outlasts_them():
+    """A short run: a vessel filled in frames 1-2 of 7, then a capillary blush as wide as the head in frames
+    3-6, brighter in the temporal mean than the vessel. The curve read from the frames' fine detail weights
+    the arterial frames (the vessel stands out of the weighted image as in those frames); read from the
+    plain frames it weighted the blush's and lost the vessel."""
+    rng = np.random.default_rng(5)
+    h = w = 96
+    inside = _disc(h, w, (48, 48), 44)
+    vessel = np.zeros((h, w), dtype=bool)
+    vessel[30:66, 85:88] = True  # near the head's edge, where the blush is faint
+    rows, cols = np.mgrid[0:h, 0:w]
+    blush = np.sqrt(np.clip(1.0 - ((rows - 48.0) ** 2 + (cols - 48.0) ** 2) / 40.0 ** 2, 0.0, None))  # a chord of the head
+    arterial, haze = np.array([0, 1, 1, 0, 0, 0, 0.0]), np.array([0, 0, 0, 1, 1, 1, 1.0])
+    frames = (15.0 + rng.normal(0.0, 5.0, (7, h, w)) + 40.0 * arterial[:, None, None] * vessel
+              + 60.0 * haze[:, None, None] * blush)
+    mean = frames.mean(axis=0)
+    assert mean[48, 48] > mean[vessel].max()  # the blush is the brighter in the temporal mean
+    weighted = bolus_weighted_mean(frames, inside, pixel_mm=(1.0, 1.0))
+    arterial_cnr = _contrast_to_noise(frames[1:3].mean(axis=0), vessel, inside)  # about 11
+    assert _contrast_to_noise(weighted, vessel, inside) > 0.9 * arterial_cnr  # read from plain frames: -1.2
+
+
 def test_bolus_weighted_mean_is_the_plain_mean_without_a_bolus():
     rng = np.random.default_rng(4)
     inside = _disc(32, 32, (16, 16), 12)

@@ -49,6 +49,10 @@ VESSEL_OPENING_FRACTION = 1.0 / 16.0
 #: Before the threshold the opened MAP is clipped at this percentile over the exposed field, so that a
 #: bright opacified region wider than the opening (an AVM nidus, a filled sinus) joins the head's class.
 MASK_CLIP_PERCENTILE = 90.0
+#: The bolus curve of the vessel image is read from each frame less its Gaussian blur of this sd (mm on the
+#: detector): vessels (a carotid is about 8 mm wide there) stay, the capillary blush (as wide as the cranium)
+#: goes. Chosen on validation seeds 6013-6027 among 2.5, 5 and 10 mm (experiments/vessel_image/vessel_image.md).
+BOLUS_DETAIL_SIGMA_MM = 10.0
 #: Empty cells around the bilateral grid (its blur reaches two cells).
 _GRID_PAD = 2
 
@@ -252,20 +256,28 @@ class PreparedDSA:
     view_label: int
 
 
-def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray, pixel_mm: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
     """The frames ``(T, H, W)`` averaged with weights that follow the run's own bolus (a temporal
-    matched filter): the mean over frames of the pixels whose temporal mean reaches
-    ``BOLUS_PIXEL_PERCENTILE`` over the cranium ``mask`` (the brightest vessels), less its median
-    over frames, negative parts zeroed. Frames without contrast get no weight, so the noise they
-    add to a plain mean drops out; a run without a bolus (flat curve, or one frame) gets the
-    plain mean. float32 ``(H, W)``."""
+    matched filter). The curve is read from the frames' fine detail (each frame less its Gaussian blur of
+    ``BOLUS_DETAIL_SIGMA_MM``; ``pixel_mm`` the frames' pixel size (rows, columns), mm) at the pixels
+    where its temporal mean reaches ``BOLUS_PIXEL_PERCENTILE`` over the cranium ``mask`` (the brightest
+    vessels); the weights are that curve less its median over frames, negative parts zeroed. Fine detail
+    leaves out the capillary blush, a haze as wide as the cranium that follows the arteries and outlasts
+    them: read from the plain frames the curve followed the blush in short runs and weighted the late
+    frames, whose vessels are gone (experiments/vessel_image/vessel_image.md). Frames without contrast get
+    no weight, so the noise they add to a plain mean drops out; a run without a bolus (flat curve, or one
+    frame) gets the plain mean. float32 ``(H, W)``."""
     frames = np.asarray(frames, dtype=np.float32)
     inside = np.asarray(mask) > 0
     mean = frames.mean(axis=0)
     if not inside.any():
         raise InputError("the cranium mask is empty: no pixels to read the bolus from")
-    bright = inside & (mean >= np.percentile(mean[inside], C.BOLUS_PIXEL_PERCENTILE))
-    curve = frames[:, bright].mean(axis=1, dtype=np.float64)
+    sigma_px = tuple(BOLUS_DETAIL_SIGMA_MM / float(s) for s in pixel_mm)
+    detail = mean - gaussian_blur(mean, sigma_px)
+    bright = (inside & (detail >= np.percentile(detail[inside], C.BOLUS_PIXEL_PERCENTILE))).astype(np.float64)
+    # each frame's detail averaged over the bright pixels, as one kernel (the blur is linear and symmetric)
+    kernel = (bright - gaussian_blur(bright, sigma_px)) / bright.sum()
+    curve = np.tensordot(frames, kernel.astype(np.float32), axes=2).astype(np.float64)
     weights = np.clip(curve - np.median(curve), 0.0, None)
     if not weights.sum() > 0:
         return mean
@@ -330,6 +342,6 @@ def preprocess_dsa(
     scale = tto_px / max(h, w)
     tto = run.detector.resized(max(1, round(h * scale)), max(1, round(w * scale)))
     tto_image, tto_mask = _finish(clipped, mask, run.detector, tto, unit)
-    tto_vessels = vessel_image(bolus_weighted_mean(frames, mask), mask, run.detector, tto)
+    tto_vessels = vessel_image(bolus_weighted_mean(frames, mask, run.detector.spacing_mm), mask, run.detector, tto)
     return PreparedDSA(image, mask, model_image, model_mask, model, tto_image, tto_mask, tto, tto_vessels, run.view_role,
                        run.view_label)
