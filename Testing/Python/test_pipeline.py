@@ -193,12 +193,13 @@ def test_one_views_init_alone_is_a_start_when_the_other_view_is_far_off(phantom_
 
 
 def test_weak_image_evidence_keeps_the_networks_estimate(tmp_path):
-    """The shipped 128-px phantom case with its arteries given: every start's objective stays near 0 (the
-    runs hold little evidence), and the TTO's tournament once ended 44 mm off from a networks' estimate of
-    0.97 / 0.79 mm. Above ``WEAK_OBJECTIVE`` the networks' estimate is kept, and the record says why."""
+    """The shipped 128-px phantom case with its arteries given: its runs hold little vessel evidence (vessel images
+    NCC 0.10-0.22 with the true projection), and the TTO's tournament once ended 44 mm off from a networks' estimate
+    of 0.97 / 0.79 mm (then: every objective near 0, above ``WEAK_OBJECTIVE``), since 2026-12-05 4.5 mm off with the
+    CTA's vessels where the lateral run shows none (vessel NCC 0.06 < ``VESSEL_NCC_FAILED``). Either way the
+    networks' estimate is kept (the weak-objective rule: test_trust), and the record says why."""
     pytest.importorskip("torch")
     from geopose.register.cli import register_files
-    from geopose.register.trust import WEAK_OBJECTIVE
 
     case = Path(__file__).resolve().parents[2] / "Resources" / "Testing" / "phantom_seed0_2mm"
     labels = load_cta(case / "labels.nii.gz", check_hu=False)
@@ -207,8 +208,7 @@ def test_weak_image_evidence_keeps_the_networks_estimate(tmp_path):
     save_volume(labels.like(L.vessel_mask(labels.array).astype(np.uint8)), segmentation)
     record = register_files(case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", tmp_path / "out",
                             segmentation=segmentation, options=RegistrationOptions(device="cpu", backend="torch"))
-    assert min(record["registration"]["tto_objective"].values()) > WEAK_OBJECTIVE
-    assert any("little image evidence" in note for note in record["notes"])
+    assert any("where the LAT run shows none" in note for note in record["notes"])
     for key in ("pa", "lat"):
         view = record["views"][key]
         assert view["truth"]["final"]["mpcd_mm"] == pytest.approx(view["truth"]["search"]["mpcd_mm"])

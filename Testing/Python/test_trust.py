@@ -23,3 +23,21 @@ def test_stage_agreement_measures_the_patient_not_the_source():
     shift[:3, 3] = [3.0, -4.0, 11.0]
     deg, mm = stage_agreement(learned, shift @ learned)
     assert deg == pytest.approx(0.0, abs=1e-4) and mm == pytest.approx(np.linalg.norm(shift[:3, 3]), abs=1e-9)
+
+
+def test_the_tto_result_gives_way_when_evidence_is_weak_or_its_vessels_miss_a_run():
+    """The TTO's result stays unless its best objective is above ``WEAK_OBJECTIVE`` or a view's vessel NCC is below
+    ``VESSEL_NCC_FAILED`` (the weaker view named); a result the stages agree on with vessels in both runs stays."""
+    from geopose.register.quality import VESSEL_NCC_FAILED
+    from geopose.register.trust import WEAK_OBJECTIVE, tto_distrusted
+
+    poses = {key: RIG[key] for key in ("pa", "lat")}
+    strong = WEAK_OBJECTIVE - 0.2
+    assert tto_distrusted(poses, poses, strong, computed_vessels=False, vessel_ncc={"pa": 0.3, "lat": 0.2}) is None
+    assert tto_distrusted(poses, poses, strong, computed_vessels=False) is None
+    weak = tto_distrusted(poses, poses, WEAK_OBJECTIVE + 0.05, computed_vessels=False, vessel_ncc={"pa": 0.3, "lat": 0.2})
+    assert weak is not None and "little image evidence" in weak
+    missed = tto_distrusted(poses, poses, strong, computed_vessels=False,
+                            vessel_ncc={"pa": VESSEL_NCC_FAILED - 0.01, "lat": VESSEL_NCC_FAILED - 0.04})
+    assert missed is not None and "LAT run shows none" in missed and f"{VESSEL_NCC_FAILED - 0.04:.2f}" in missed
+    assert tto_distrusted(poses, poses, strong, computed_vessels=False, vessel_ncc={"pa": None, "lat": 0.2}) is None

@@ -17,7 +17,7 @@ its own module:
    (PyTorch; skipped with a note without it) from every distinct candidate start, the result of
    lowest objective kept, the DICOM angles' on a tie;
 7. ``trust.kept_result``: the networks' estimate is kept where the TTO's result is not to be
-   trusted, and without vessel evidence the move from the DICOM angles is bounded;
+   trusted (its vessel NCC per view from ``evidence.view_evidence``), and without vessel evidence the move from the DICOM angles is bounded;
 8. ``mirror.mirror_test``: with a given segmentation, the result weighed against the CTA mirrored
    left-right;
 9. ``scoring.score_views``: final mNCC, silhouette Dice and quality flag per view.
@@ -40,6 +40,7 @@ from ..volume import Volume
 from .biplane import nominal_poses, patient_pose, view_poses
 from .calibration import calibrate
 from .engine import NO_TORCH_TTO_NOTE, StageClock, start_case
+from .evidence import view_evidence
 from .init import biplane_init
 from .mirror import mirror_test
 from .progress import CancelCheck, Monitor, ProgressCallback
@@ -98,7 +99,7 @@ def register_case(
             search = similarity_search(renderer, case.model_targets(), X_learned, rig, render_px, options.search.schedule,
                                        monitor)
         estimate, X_learned, learned = SEARCHED_START, search.patient_pose, view_poses(search.patient_pose, rig)
-    tournament = None
+    tournament, tto_vessel_ncc = None, None
     with clock("tto", engine):  # the CTA's masks are made here, at the first render that needs them
         monitor.step("tto", 0.0, "the CTA's cranium and vessel masks")
         vessel_evidence = case.vessel_evidence
@@ -111,8 +112,10 @@ def register_case(
         elif options.tto.iterations > 0:
             tournament = run_tournament(renderer, engine.tto_renderer, case.views, starts, rig, options.tto, options.objective,
                                         monitor)
+            tto_vessel_ncc = {key: view_evidence(renderer, pose, case.views[key], options.objective).vessel_ncc
+                              for key, pose in tournament.result.poses.items()}
         kept = kept_result(starts, tournament, (estimate, X_learned, learned), rig, vessel_evidence=vessel_evidence,
-                           computed_vessels=segmentation is None)
+                           computed_vessels=segmentation is None, tto_vessel_ncc=tto_vessel_ncc)
     notes += [kept.kept_learned] if kept.kept_learned else []
     mirror = None
     if vessel_evidence and segmentation is not None and tournament is not None:

@@ -5,8 +5,10 @@ is trusted over the test-time optimisation's result (ours).
 * With it, the tournament's result (``tournament.py``), unless :func:`tto_distrusted` finds a reason
   to keep the networks' estimate (greedy Refine + search): on a vessel mask computed from the CTA (an
   approximation whose objective can lie degrees from the truth) a move from that estimate further than
-  the stages may disagree (``quality.AGREEMENT_DEG`` / ``AGREEMENT_MM``); or a best objective above
-  :data:`WEAK_OBJECTIVE` (runs that hold too little image evidence to tell poses apart).
+  the stages may disagree (``quality.AGREEMENT_DEG`` / ``AGREEMENT_MM``); a best objective above
+  :data:`WEAK_OBJECTIVE` (runs that hold too little image evidence to tell poses apart); or a result whose
+  vessel NCC in a view is below ``quality.VESSEL_NCC_FAILED`` (the CTA's vessels where that run shows none:
+  the quality flag would call it failed).
 * Without vessel evidence the silhouette is the only evidence: only the DICOM angles started, and the
   move from them is bounded (``bound.py``).
 """
@@ -22,11 +24,11 @@ from ..metrics.measures import pose_error_components
 from .biplane import view_poses
 from .bound import BoundedMove, bound_move
 from .case import VIEW_KEYS
-from .quality import AGREEMENT_DEG, AGREEMENT_MM
+from .quality import AGREEMENT_DEG, AGREEMENT_MM, VESSEL_NCC_FAILED
 from .starts import Starts
 from .tournament import Tournament
 
-__all__ = ["WEAK_OBJECTIVE", "NO_VESSELS_NOTE", "APPROXIMATE_VESSELS_NOTE", "WEAK_EVIDENCE_NOTE", "Kept",
+__all__ = ["WEAK_OBJECTIVE", "NO_VESSELS_NOTE", "APPROXIMATE_VESSELS_NOTE", "WEAK_EVIDENCE_NOTE", "MISSED_VESSELS_NOTE", "Kept",
            "stage_agreement", "tto_distrusted", "kept_result"]
 
 #: Objective (summed over both views; lower is better) above which the runs hold too little image evidence
@@ -53,6 +55,11 @@ WEAK_EVIDENCE_NOTE = ("the runs hold little image evidence (best objective {obje
                       "search) was kept")
 
 
+#: Said (record, flag) when the TTO's result puts the CTA's vessels where a run shows none.
+MISSED_VESSELS_NOTE = ("the test-time optimisation's result places the CTA's vessels where the {view} run shows none (vessel "
+                       "NCC {ncc:.2f} < {limit:g}): the networks' estimate (greedy Refine + search) was kept")
+
+
 def stage_agreement(learned: np.ndarray, final: np.ndarray) -> tuple[float, float]:
     """How far the final camera pose ``(4, 4)`` moved from the learned one: the rotation (deg) and
     the shift (mm) of the CTA's centre in the camera frame (:func:`pose_error_components`; a
@@ -63,9 +70,10 @@ def stage_agreement(learned: np.ndarray, final: np.ndarray) -> tuple[float, floa
 
 
 def tto_distrusted(learned: Mapping[str, np.ndarray], finals: Mapping[str, np.ndarray], objective: float | None, *,
-                   computed_vessels: bool) -> str | None:
+                   computed_vessels: bool, vessel_ncc: Mapping[str, float | None] | None = None) -> str | None:
     """Why the TTO's result ``finals`` gives way to the networks' estimate ``learned`` (poses per view), worded for
-    the record and the flag; None when it is kept. ``objective``: the result's (both views summed)."""
+    the record and the flag; None when it is kept. ``objective``: the result's (both views summed); ``vessel_ncc``:
+    the result's vessel NCC per view (``evidence.py``; None: not measured)."""
     if computed_vessels:
         moved = [stage_agreement(learned[key], finals[key]) for key in VIEW_KEYS]
         rot, mm = max(m[0] for m in moved), max(m[1] for m in moved)
@@ -73,6 +81,10 @@ def tto_distrusted(learned: Mapping[str, np.ndarray], finals: Mapping[str, np.nd
             return APPROXIMATE_VESSELS_NOTE.format(rot=rot, mm=mm)
     if objective is not None and objective > WEAK_OBJECTIVE:
         return WEAK_EVIDENCE_NOTE.format(objective=objective, limit=WEAK_OBJECTIVE)
+    missed = {key: ncc for key, ncc in (vessel_ncc or {}).items() if ncc is not None and ncc < VESSEL_NCC_FAILED}
+    if missed:
+        key = min(missed, key=missed.get)
+        return MISSED_VESSELS_NOTE.format(view=key.upper(), ncc=missed[key], limit=VESSEL_NCC_FAILED)
     return None
 
 
@@ -90,9 +102,10 @@ class Kept:
 
 
 def kept_result(starts: Starts, tournament: Tournament | None, learned: tuple[str, np.ndarray, Mapping[str, np.ndarray]],
-                rig: Mapping[str, np.ndarray], *, vessel_evidence: bool, computed_vessels: bool) -> Kept:
+                rig: Mapping[str, np.ndarray], *, vessel_evidence: bool, computed_vessels: bool,
+                tto_vessel_ncc: Mapping[str, float | None] | None = None) -> Kept:
     """The pose the registration returns (rules above). ``learned``: the networks' estimate as
-    ``(start name, patient pose, camera poses per view)``."""
+    ``(start name, patient pose, camera poses per view)``; ``tto_vessel_ncc``: the TTO result's vessel NCC per view."""
     name, X_learned, learned_poses = learned
     if tournament is None:
         kept = Kept(starts.best, starts.poses[starts.best], view_poses(starts.poses[starts.best], rig))
@@ -100,7 +113,7 @@ def kept_result(starts: Starts, tournament: Tournament | None, learned: tuple[st
         result = tournament.result
         kept = Kept(tournament.chosen, result.patient_pose, dict(result.poses))
         reason = vessel_evidence and tto_distrusted(learned_poses, kept.poses, tournament.objectives.get(tournament.chosen),
-                                                    computed_vessels=computed_vessels)
+                                                    computed_vessels=computed_vessels, vessel_ncc=tto_vessel_ncc)
         if reason:
             kept = Kept(name, X_learned, dict(learned_poses), reason)
     if not vessel_evidence:
