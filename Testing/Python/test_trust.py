@@ -41,3 +41,18 @@ def test_the_tto_result_gives_way_when_evidence_is_weak_or_its_vessels_miss_a_ru
                             vessel_ncc={"pa": VESSEL_NCC_FAILED - 0.01, "lat": VESSEL_NCC_FAILED - 0.04})
     assert missed is not None and "LAT run shows none" in missed and f"{VESSEL_NCC_FAILED - 0.04:.2f}" in missed
     assert tto_distrusted(poses, poses, strong, computed_vessels=False, vessel_ncc={"pa": None, "lat": 0.2}) is None
+
+
+def test_on_computed_vessels_only_a_far_result_from_another_start_gives_way():
+    """On a computed vessel mask a result 8 deg from the networks' estimate gives way to it when another start (the
+    DICOM angles') won; the TTO run from the estimate itself may move it that far."""
+    from geopose.register.trust import tto_distrusted
+
+    learned = {key: RIG[key] for key in ("pa", "lat")}
+    turn = np.eye(4)
+    turn[:3, :3] = _rotation(np.array([0.0, 0.0, 1.0]), 8.0)
+    far = {key: turn @ pose for key, pose in learned.items()}
+    reason = tto_distrusted(learned, far, -1.0, computed_vessels=True)
+    assert reason is not None and "moved the networks' estimate by 8.0 deg" in reason
+    assert tto_distrusted(learned, far, -1.0, computed_vessels=True, from_learned=True) is None
+    assert tto_distrusted(learned, far, -1.0, computed_vessels=False) is None
