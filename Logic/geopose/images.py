@@ -10,7 +10,7 @@ import SimpleITK as sitk
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["bilinear_sample", "block_mean", "gaussian_blur", "normalize_minmax", "resize_bilinear"]
+__all__ = ["bilinear_sample", "block_mean", "gaussian_blur", "wide_gaussian_blur", "normalize_minmax", "resize_bilinear"]
 
 ImageBatch = TypeVar("ImageBatch", np.ndarray, "Tensor")
 
@@ -83,6 +83,14 @@ def gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarra
     variance = [float(sigma_px[1]) ** 2, float(sigma_px[0]) ** 2]  # sitk order: x (columns), y (rows)
     out = sitk.DiscreteGaussian(img, variance=variance, maximumKernelWidth=256, useImageSpacing=False)
     return sitk.GetArrayFromImage(out)
+
+
+def wide_gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
+    """Gaussian blur (sd ``sigma_px`` along rows, columns) by the recursive (IIR) filter, whose cost does not grow
+    with the sd: for blurs of tens of pixels (at sd 19 px on 512^2 the discrete kernel took 0.7 s, this 0.01 s). float64."""
+    img = sitk.GetImageFromArray(np.asarray(image, dtype=np.float64))
+    img.SetSpacing((1.0 / float(sigma_px[1]), 1.0 / float(sigma_px[0])))  # sitk order x (columns), y (rows): sd 1 unit
+    return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(img, 1.0))
 
 
 def bilinear_sample(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ import SimpleITK as sitk
 from .. import contract as C
 from ..geometry.detector import Detector
 from ..errors import InputError
-from ..images import bilinear_sample, block_mean, gaussian_blur, normalize_minmax
+from ..images import bilinear_sample, block_mean, gaussian_blur, normalize_minmax, wide_gaussian_blur
 from ..options import check_clip_percentiles
 from .run import DSARun
 
@@ -273,10 +273,10 @@ def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray, pixel_mm: tuple[fl
     if not inside.any():
         raise InputError("the cranium mask is empty: no pixels to read the bolus from")
     sigma_px = tuple(BOLUS_DETAIL_SIGMA_MM / float(s) for s in pixel_mm)
-    detail = mean - gaussian_blur(mean, sigma_px)
+    detail = mean - wide_gaussian_blur(mean, sigma_px)
     bright = (inside & (detail >= np.percentile(detail[inside], C.BOLUS_PIXEL_PERCENTILE))).astype(np.float64)
     # each frame's detail averaged over the bright pixels, as one kernel (the blur is linear and symmetric)
-    kernel = (bright - gaussian_blur(bright, sigma_px)) / bright.sum()
+    kernel = (bright - wide_gaussian_blur(bright, sigma_px)) / bright.sum()
     curve = np.tensordot(frames, kernel.astype(np.float32), axes=2).astype(np.float64)
     weights = np.clip(curve - np.median(curve), 0.0, None)
     if not weights.sum() > 0:
