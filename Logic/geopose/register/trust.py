@@ -4,10 +4,8 @@ is trusted over the test-time optimisation's result (ours).
 * Without TTO (no PyTorch, or 0 steps) the candidate start of lowest objective is kept (``starts.py``).
 * With it, the tournament's result (``tournament.py``), unless :func:`tto_distrusted` finds a reason
   to keep the networks' estimate (greedy Refine + search): on a vessel mask computed from the CTA (an
-  approximation whose objective can lie degrees from the truth) a result from another start (the DICOM
-  angles') further from that estimate than the stages may disagree (``quality.AGREEMENT_DEG`` /
-  ``AGREEMENT_MM``; the TTO run from the estimate itself may move it: on validation phantoms 6010-6029 and
-  benchmark 5000-5009 such moves were mostly gains, experiments/vessel_image/vessel_image.md); a best objective above
+  approximation whose objective can lie degrees from the truth) a move from that estimate further than
+  the stages may disagree (``quality.AGREEMENT_DEG`` / ``AGREEMENT_MM``); a best objective above
   :data:`WEAK_OBJECTIVE` (runs that hold too little image evidence to tell poses apart); or a result whose
   vessel NCC in a view is below ``quality.VESSEL_NCC_FAILED`` (the CTA's vessels where that run shows none:
   the quality flag would call it failed).
@@ -72,13 +70,11 @@ def stage_agreement(learned: np.ndarray, final: np.ndarray) -> tuple[float, floa
 
 
 def tto_distrusted(learned: Mapping[str, np.ndarray], finals: Mapping[str, np.ndarray], objective: float | None, *,
-                   computed_vessels: bool, from_learned: bool = False,
-                   vessel_ncc: Mapping[str, float | None] | None = None) -> str | None:
+                   computed_vessels: bool, vessel_ncc: Mapping[str, float | None] | None = None) -> str | None:
     """Why the TTO's result ``finals`` gives way to the networks' estimate ``learned`` (poses per view), worded for
     the record and the flag; None when it is kept. ``objective``: the result's (both views summed); ``vessel_ncc``:
-    the result's vessel NCC per view (``evidence.py``; None: not measured); ``from_learned``: the result is the TTO
-    run started at the networks' estimate (its move is not bounded on computed vessels)."""
-    if computed_vessels and not from_learned:
+    the result's vessel NCC per view (``evidence.py``; None: not measured)."""
+    if computed_vessels:
         moved = [stage_agreement(learned[key], finals[key]) for key in VIEW_KEYS]
         rot, mm = max(m[0] for m in moved), max(m[1] for m in moved)
         if rot > AGREEMENT_DEG or mm > AGREEMENT_MM:
@@ -117,8 +113,7 @@ def kept_result(starts: Starts, tournament: Tournament | None, learned: tuple[st
         result = tournament.result
         kept = Kept(tournament.chosen, result.patient_pose, dict(result.poses))
         reason = vessel_evidence and tto_distrusted(learned_poses, kept.poses, tournament.objectives.get(tournament.chosen),
-                                                    computed_vessels=computed_vessels, from_learned=tournament.chosen == name,
-                                                    vessel_ncc=tto_vessel_ncc)
+                                                    computed_vessels=computed_vessels, vessel_ncc=tto_vessel_ncc)
         if reason:
             kept = Kept(name, X_learned, dict(learned_poses), reason)
     if not vessel_evidence:
