@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from heldout import parse_heldout_args  # noqa: E402
+from heldout import parse_heldout_args, publish  # noqa: E402
 
 from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.cta import load_cta, vessel_mask_from_cta  # noqa: E402
@@ -66,10 +66,7 @@ def main() -> None:
     for m in MASKS:
         v = np.array([x for r in rows if r["mask"] == m for x in r["mpcd_mm"]])
         lines.append(f"| {m} | {v.mean():.2f} | {np.median(v):.2f} | {(v < 2).sum()} / {v.size} | {(v < 5).sum()} / {v.size} |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.doc:
-        args.doc.write_text(text)
+    publish("\n".join(lines), args.doc, "The default path with oracle vessel masks", "Held-out phantoms, 2 mm; see vessel_segmentation.md.")
 
 
 if __name__ == "__main__":
