@@ -58,7 +58,7 @@ def test_bolus_weighted_mean_keeps_the_vessels_and_drops_the_frames_without_cont
     bolus = np.zeros(24)
     bolus[6:10] = [0.5, 1.0, 1.0, 0.5]
     frames = 15.0 + rng.normal(0.0, 10.0, (24, h, w)) + 60.0 * bolus[:, None, None] * vessel
-    weighted = bolus_weighted_mean(frames, inside)
+    weighted = bolus_weighted_mean(frames, inside, (1.0, 1.0))
     plain = frames.mean(axis=0)
     assert weighted.shape == (h, w) and weighted.dtype == np.float32
     gain = _contrast_to_noise(weighted, vessel, inside) / _contrast_to_noise(plain, vessel, inside)
@@ -92,11 +92,11 @@ def test_bolus_weighted_mean_is_the_plain_mean_without_a_bolus():
     rng = np.random.default_rng(4)
     inside = _disc(32, 32, (16, 16), 12)
     still = np.repeat(rng.uniform(0, 50, (1, 32, 32)), 5, axis=0)  # every frame the same: a flat curve
-    assert np.allclose(bolus_weighted_mean(still, inside), still[0], atol=1e-4)
+    assert np.allclose(bolus_weighted_mean(still, inside, (1.0, 1.0)), still[0], atol=1e-4)
     one = rng.uniform(0, 50, (1, 32, 32))
-    assert np.allclose(bolus_weighted_mean(one, inside), one[0], atol=1e-4)
+    assert np.allclose(bolus_weighted_mean(one, inside, (1.0, 1.0)), one[0], atol=1e-4)
     with pytest.raises(InputError, match="mask is empty"):
-        bolus_weighted_mean(one, np.zeros((32, 32), dtype=bool))
+        bolus_weighted_mean(one, np.zeros((32, 32), dtype=bool), (1.0, 1.0))
 
 
 def test_cranium_mask_of_a_disc_is_the_disc():

@@ -26,8 +26,9 @@ def test_stage_agreement_measures_the_patient_not_the_source():
 
 
 def test_the_tto_result_gives_way_when_evidence_is_weak_or_its_vessels_miss_a_run():
-    """The TTO's result stays unless its best objective is above ``WEAK_OBJECTIVE`` or a view's vessel NCC is below
-    ``VESSEL_NCC_FAILED`` (the weaker view named); a result the stages agree on with vessels in both runs stays."""
+    """The TTO's result stays unless its best objective is above ``WEAK_OBJECTIVE`` or, on a given segmentation, a
+    view's vessel NCC is below ``VESSEL_NCC_FAILED`` (the weaker view named); a result the stages agree on with
+    vessels in both runs stays."""
     from geopose.register.quality import VESSEL_NCC_FAILED
     from geopose.register.trust import WEAK_OBJECTIVE, tto_distrusted
 
@@ -41,6 +42,8 @@ def test_the_tto_result_gives_way_when_evidence_is_weak_or_its_vessels_miss_a_ru
                             vessel_ncc={"pa": VESSEL_NCC_FAILED - 0.01, "lat": VESSEL_NCC_FAILED - 0.04})
     assert missed is not None and "LAT run shows none" in missed and f"{VESSEL_NCC_FAILED - 0.04:.2f}" in missed
     assert tto_distrusted(poses, poses, strong, computed_vessels=False, vessel_ncc={"pa": None, "lat": 0.2}) is None
+    # a computed mask's vessel NCC stays low at the truth: it is not read there (as the quality flag does not)
+    assert tto_distrusted(poses, poses, strong, computed_vessels=True, vessel_ncc={"pa": 0.05, "lat": 0.05}) is None
 
 
 def test_on_computed_vessels_a_far_tto_result_gives_way_to_the_networks_estimate():

@@ -256,7 +256,7 @@ class PreparedDSA:
     view_label: int
 
 
-def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray, pixel_mm: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray, pixel_mm: tuple[float, float]) -> np.ndarray:
     """The frames ``(T, H, W)`` averaged with weights that follow the run's own bolus (a temporal
     matched filter). The curve is read from the frames' fine detail (each frame less its Gaussian blur of
     ``BOLUS_DETAIL_SIGMA_MM``; ``pixel_mm`` the frames' pixel size (rows, columns), mm) at the pixels

@@ -17,7 +17,8 @@ its own module:
    (PyTorch; skipped with a note without it) from every distinct candidate start, the result of
    lowest objective kept, the DICOM angles' on a tie;
 7. ``trust.kept_result``: the networks' estimate is kept where the TTO's result is not to be
-   trusted (its vessel NCC per view from ``evidence.view_evidence``), and without vessel evidence the move from the DICOM angles is bounded;
+   trusted (on a given segmentation its vessel NCC per view, ``evidence.view_evidence``, is read for
+   that), and without vessel evidence the move from the DICOM angles is bounded;
 8. ``mirror.mirror_test``: with a given segmentation, the result weighed against the CTA mirrored
    left-right;
 9. ``scoring.score_views``: final mNCC, silhouette Dice and quality flag per view.
@@ -99,7 +100,7 @@ def register_case(
             search = similarity_search(renderer, case.model_targets(), X_learned, rig, render_px, options.search.schedule,
                                        monitor)
         estimate, X_learned, learned = SEARCHED_START, search.patient_pose, view_poses(search.patient_pose, rig)
-    tournament, tto_vessel_ncc = None, None
+    tournament, measured = None, None
     with clock("tto", engine):  # the CTA's masks are made here, at the first render that needs them
         monitor.step("tto", 0.0, "the CTA's cranium and vessel masks")
         vessel_evidence = case.vessel_evidence
@@ -112,10 +113,12 @@ def register_case(
         elif options.tto.iterations > 0:
             tournament = run_tournament(renderer, engine.tto_renderer, case.views, starts, rig, options.tto, options.objective,
                                         monitor)
-            tto_vessel_ncc = {key: view_evidence(renderer, pose, case.views[key], options.objective).vessel_ncc
-                              for key, pose in tournament.result.poses.items()}
+            if segmentation is not None:  # the result's evidence, (pose, terms) per view: trust and scoring read it
+                measured = {key: (pose, view_evidence(renderer, pose, case.views[key], options.objective))
+                            for key, pose in tournament.result.poses.items()}
         kept = kept_result(starts, tournament, (estimate, X_learned, learned), rig, vessel_evidence=vessel_evidence,
-                           computed_vessels=segmentation is None, tto_vessel_ncc=tto_vessel_ncc)
+                           computed_vessels=segmentation is None,
+                           tto_vessel_ncc=None if measured is None else {key: ev.vessel_ncc for key, (_, ev) in measured.items()})
     notes += [kept.kept_learned] if kept.kept_learned else []
     mirror = None
     if vessel_evidence and segmentation is not None and tournament is not None:
@@ -130,7 +133,7 @@ def register_case(
     with clock("score", engine):
         outcomes = score_views(renderer, case, registration, inits=init.views, init_poses=view_poses(init.patient_pose, rig),
                                refined=refined.traces, learned=learned, finals=kept.poses, searched=search is not None,
-                               given_vessels=segmentation is not None, objective=options.objective)
+                               given_vessels=segmentation is not None, objective=options.objective, measured=measured)
     monitor.step("done", 1.0, "registration finished" + (" (" + notes[0] + ")" if notes else ""))
     return CaseRegistration(cta, case.labels_source, calibration, outcomes, tournament.result if tournament else None,
                             clock.total(), options, engine.describe(options, case), registration, renderer, notes,

@@ -18,7 +18,7 @@ from ..metrics.similarity import mncc
 from ..options import Objective
 from ..render.renderer import Renderer
 from .case import VIEW_KEYS, PreparedCase, silhouette_dice
-from .evidence import view_evidence
+from .evidence import ViewEvidence, view_evidence
 from .quality import VIEW_DISAGREEMENT_MM, Quality, assess
 from .results import InitEstimate, RefineTrace, Registration, ViewOutcome
 from .trust import stage_agreement
@@ -57,16 +57,20 @@ def consistency_doubts(init: InitEstimate, label: int, registration: Registratio
 def score_views(renderer: Renderer, case: PreparedCase, registration: Registration, *, inits: Mapping[str, InitEstimate],
                 init_poses: Mapping[str, np.ndarray], refined: Mapping[str, RefineTrace], learned: Mapping[str, np.ndarray],
                 finals: Mapping[str, np.ndarray], searched: bool, given_vessels: bool,
-                objective: Objective = Objective()) -> dict[str, ViewOutcome]:
+                objective: Objective = Objective(),
+                measured: Mapping[str, tuple[np.ndarray, ViewEvidence]] | None = None) -> dict[str, ViewOutcome]:
     """Every view's outcome: the stages' poses (``learned``: the networks' estimate; ``finals``: the result) with
     the final scores and flag. The vessel NCC grades a pose only against a given segmentation
     (``given_vessels``): a computed mask holds veins and bone rims, and its NCC stays low at the truth (the
-    demo phantom: 0.05-0.13 at 2 mm mPCD)."""
+    demo phantom: 0.05-0.13 at 2 mm mPCD). ``measured``: evidence already measured, ``(pose, evidence)`` per view,
+    reused where that pose is the final one."""
     outcomes = {}
     for key in VIEW_KEYS:
         view = case.views[key]
         score, dice = score_view(renderer, finals[key], view)
-        evidence = view_evidence(renderer, finals[key], view, objective)
+        known = (measured or {}).get(key)
+        reuse = known is not None and np.array_equal(known[0], finals[key])
+        evidence = known[1] if reuse else view_evidence(renderer, finals[key], view, objective)
         quality: Quality = assess(score, dice, *stage_agreement(learned[key], finals[key]),
                                   evidence=evidence if given_vessels else None, mirror=registration.mirror,
                                   doubts=consistency_doubts(inits[key], view.view_label, registration))

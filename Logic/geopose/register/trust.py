@@ -6,9 +6,10 @@ is trusted over the test-time optimisation's result (ours).
   to keep the networks' estimate (greedy Refine + search): on a vessel mask computed from the CTA (an
   approximation whose objective can lie degrees from the truth) a move from that estimate further than
   the stages may disagree (``quality.AGREEMENT_DEG`` / ``AGREEMENT_MM``); a best objective above
-  :data:`WEAK_OBJECTIVE` (runs that hold too little image evidence to tell poses apart); or a result whose
-  vessel NCC in a view is below ``quality.VESSEL_NCC_FAILED`` (the CTA's vessels where that run shows none:
-  the quality flag would call it failed).
+  :data:`WEAK_OBJECTIVE` (runs that hold too little image evidence to tell poses apart); or, on a given
+  segmentation, a result whose vessel NCC in a view is below ``quality.VESSEL_NCC_FAILED`` (the CTA's vessels
+  where that run shows none: the quality flag would call it failed; a computed mask's NCC stays low at the
+  truth, so neither reads it there, ``scoring.py``).
 * Without vessel evidence the silhouette is the only evidence: only the DICOM angles started, and the
   move from them is bounded (``bound.py``).
 """
@@ -73,7 +74,7 @@ def tto_distrusted(learned: Mapping[str, np.ndarray], finals: Mapping[str, np.nd
                    computed_vessels: bool, vessel_ncc: Mapping[str, float | None] | None = None) -> str | None:
     """Why the TTO's result ``finals`` gives way to the networks' estimate ``learned`` (poses per view), worded for
     the record and the flag; None when it is kept. ``objective``: the result's (both views summed); ``vessel_ncc``:
-    the result's vessel NCC per view (``evidence.py``; None: not measured)."""
+    the result's vessel NCC per view (``evidence.py``; None: not measured), read on a given segmentation only."""
     if computed_vessels:
         moved = [stage_agreement(learned[key], finals[key]) for key in VIEW_KEYS]
         rot, mm = max(m[0] for m in moved), max(m[1] for m in moved)
@@ -81,7 +82,8 @@ def tto_distrusted(learned: Mapping[str, np.ndarray], finals: Mapping[str, np.nd
             return APPROXIMATE_VESSELS_NOTE.format(rot=rot, mm=mm)
     if objective is not None and objective > WEAK_OBJECTIVE:
         return WEAK_EVIDENCE_NOTE.format(objective=objective, limit=WEAK_OBJECTIVE)
-    missed = {key: ncc for key, ncc in (vessel_ncc or {}).items() if ncc is not None and ncc < VESSEL_NCC_FAILED}
+    given = {} if computed_vessels else vessel_ncc or {}
+    missed = {key: ncc for key, ncc in given.items() if ncc is not None and ncc < VESSEL_NCC_FAILED}
     if missed:
         key = min(missed, key=missed.get)
         return MISSED_VESSELS_NOTE.format(view=key.upper(), ncc=missed[key], limit=VESSEL_NCC_FAILED)
