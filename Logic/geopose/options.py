@@ -197,7 +197,7 @@ class Objective(_Group):
     model's optimum lies nearest the truth, but it adapts its intensities to any pose, so far from the
     truth it also rewards wrong ones; the clipped DRR's fixed mapping draws a start 10 deg off in, so the
     coarse steps use it (``coarse_silhouette``). ``read_opacified``: the TTO reads which vessels the runs
-    show opacified after its coarse steps and compares those alone from then on (``register/opacified.py``)."""
+    show opacified at the networks' estimate and compares those alone (``register/opacified.py``)."""
 
     group: ClassVar[str] = "objective"
     ncc_weight: float = setting(0.5, "share of the silhouette terms on -mNCC (the rest on the Dice loss)",
@@ -207,7 +207,7 @@ class Objective(_Group):
     clip_percentiles: tuple = setting(C.MAP_CLIP_PERCENTILES, "percentiles a clipped DRR is clipped to",
                                       kind="percentiles", cli=False)
     vessel_weight: float = setting(0.75, "weight of the vessel term against the silhouette terms", bounds=(0.0, 1.0))
-    read_opacified: bool = setting(True, "compare only the vessels the runs show opacified after the coarse steps")
+    read_opacified: bool = setting(True, "compare only the vessels the runs show opacified at the networks' estimate")
 
 
 @dataclass(frozen=True)

@@ -34,3 +34,35 @@ def test_the_tto_tries_the_dicom_angles_and_the_best_other_starts():
     assert list(tried_starts(starts, 3)) == [DICOM_START, "Init", "Refine + search"]
     assert list(tried_starts(starts, 1)) == [DICOM_START]
     assert list(tried_starts(starts, 100)) == list(starts.distinct()) == [DICOM_START, "Init", "Init PA", "Refine + search"]
+
+
+def test_the_opacified_vessels_are_read_at_the_networks_estimate_before_any_step(unilateral_case):
+    """With ``read_at`` (the networks' estimate) the tournament reads the opacified vessels there before its first
+    step: the run that starts there holds that selection (iteration 0, the estimate's name), a start 20 mm off keeps
+    every vessel; read 80 mm off too few pass, and the selection is read after the coarse steps instead, at the
+    start of lowest loss."""
+    from register_helpers import _prepared
+
+    from geopose.geometry import invert
+    from geopose.register import TTOSchedule
+    from geopose.register.biplane import nominal_poses
+    from geopose.register.tournament import optimise_from_starts
+    from geopose.register.tto import tto_views
+
+    truth, runs, prep, renderer = _prepared(unilateral_case)
+    rig = nominal_poses(runs)
+    X = truth.poses["pa"] @ invert(rig["pa"])
+    off = X.copy()
+    off[:3, 3] += [12.0, 0.0, 16.0]
+    schedule = TTOSchedule(iterations=5)
+    views = tto_views(prep.views, truth.poses)
+    starts = {"estimate": X, "DICOM angles": off}
+    out = optimise_from_starts(renderer, views, starts, rig, schedule, keep=("DICOM angles",), read_at=("estimate", X))
+    selection = out["estimate"].vessel_selection
+    assert selection is not None and selection.applied and selection.iteration == 0 and selection.start == "estimate"
+    assert out["DICOM angles"].vessel_selection is None
+    far = X.copy()
+    far[:3, 3] += [60.0, 0.0, 60.0]
+    late = optimise_from_starts(renderer, views, starts, rig, schedule, keep=("DICOM angles",), read_at=("far", far))
+    read = next(r.vessel_selection for r in late.values() if r.vessel_selection is not None)
+    assert read.iteration == schedule.coarse_steps() and read.start in starts

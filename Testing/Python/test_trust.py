@@ -30,10 +30,10 @@ def test_the_tto_result_gives_way_when_evidence_is_weak_or_its_vessels_miss_a_ru
     view's vessel NCC is below ``VESSEL_NCC_FAILED`` (the weaker view named); a result the stages agree on with
     vessels in both runs stays."""
     from geopose.register.quality import VESSEL_NCC_FAILED
-    from geopose.register.trust import WEAK_OBJECTIVE, tto_distrusted
+    from geopose.register.trust import COMPUTED_VESSELS_OBJECTIVE, WEAK_OBJECTIVE, tto_distrusted
 
     poses = {key: RIG[key] for key in ("pa", "lat")}
-    strong = WEAK_OBJECTIVE - 0.2
+    strong = min(WEAK_OBJECTIVE, COMPUTED_VESSELS_OBJECTIVE) - 0.2
     assert tto_distrusted(poses, poses, strong, computed_vessels=False, vessel_ncc={"pa": 0.3, "lat": 0.2}) is None
     assert tto_distrusted(poses, poses, strong, computed_vessels=False) is None
     weak = tto_distrusted(poses, poses, WEAK_OBJECTIVE + 0.05, computed_vessels=False, vessel_ncc={"pa": 0.3, "lat": 0.2})
@@ -46,15 +46,20 @@ def test_the_tto_result_gives_way_when_evidence_is_weak_or_its_vessels_miss_a_ru
     assert tto_distrusted(poses, poses, strong, computed_vessels=True, vessel_ncc={"pa": 0.05, "lat": 0.05}) is None
 
 
-def test_on_computed_vessels_a_far_tto_result_gives_way_to_the_networks_estimate():
-    """On a vessel mask computed from the CTA a result 8 deg from the networks' estimate gives way to it (the note gives
-    the move); with a given segmentation it stays."""
-    from geopose.register.trust import tto_distrusted
+def test_on_computed_vessels_a_weakly_matched_tto_result_gives_way_to_the_networks_estimate():
+    """On a vessel mask computed from the CTA a result whose objective is above ``COMPUTED_VESSELS_OBJECTIVE`` gives way
+    to the networks' estimate (the note gives the objective and the move, 8 deg); below it the result stays however far
+    it moved; with a given segmentation the same weak result stays (only ``WEAK_OBJECTIVE`` applies there)."""
+    from geopose.register.trust import COMPUTED_VESSELS_OBJECTIVE, WEAK_OBJECTIVE, tto_distrusted
 
     learned = {key: RIG[key] for key in ("pa", "lat")}
     turn = np.eye(4)
     turn[:3, :3] = _rotation(np.array([0.0, 0.0, 1.0]), 8.0)
     far = {key: turn @ pose for key, pose in learned.items()}
-    reason = tto_distrusted(learned, far, -1.0, computed_vessels=True)
-    assert reason is not None and "moved the networks' estimate by 8.0 deg" in reason
-    assert tto_distrusted(learned, far, -1.0, computed_vessels=False) is None
+    weak = COMPUTED_VESSELS_OBJECTIVE + 0.05
+    assert weak < WEAK_OBJECTIVE
+    reason = tto_distrusted(learned, far, weak, computed_vessels=True)
+    assert reason is not None and f"objective {weak:.3f} > {COMPUTED_VESSELS_OBJECTIVE:g}" in reason
+    assert "moved the networks' estimate by 8.0 deg" in reason
+    assert tto_distrusted(learned, far, COMPUTED_VESSELS_OBJECTIVE - 0.05, computed_vessels=True) is None
+    assert tto_distrusted(learned, far, weak, computed_vessels=False) is None

@@ -112,7 +112,7 @@ def register_case(
             monitor.step("tto", 1.0, NO_TORCH_TTO_NOTE)
         elif options.tto.iterations > 0:
             tournament = run_tournament(renderer, engine.tto_renderer, case.views, starts, rig, options.tto, options.objective,
-                                        monitor)
+                                        monitor, estimate=(estimate, X_learned))
             if segmentation is not None:  # the result's evidence, (pose, terms) per view: trust and scoring read it
                 measured = {key: (pose, view_evidence(renderer, pose, case.views[key], options.objective))
                             for key, pose in tournament.result.poses.items()}

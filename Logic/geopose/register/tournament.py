@@ -1,10 +1,11 @@
 """The test-time optimisation of one patient pose from several starts, one result kept (ours).
 
 The DICOM angles' start and the best other distinct candidate starts by their objective (``starts.py``;
-``options.TTOSchedule.starts`` in all) run the TTO's coarse steps; there the vessels the
-runs show opacified are read at the pose of the start of lowest loss, and the runs near it compare
-those alone from then on (``opacified.py``); the DICOM angles' run and the best other by the loss
-there (``options.TTOSchedule.finalists`` in all) run to the end. The finalists are compared by one
+``options.TTOSchedule.starts`` in all) run the TTO's coarse steps. The vessels the runs show opacified
+are read at the networks' estimate before any step, and the runs that start near it compare those alone
+(``opacified.py``; read after the coarse steps at the pose of the start of lowest loss when too few pass
+there); the DICOM angles' run and the best other by the loss after the coarse steps
+(``options.TTOSchedule.finalists`` in all) run to the end. The finalists are compared by one
 objective (``objective.py``; the opacified vessels alone, when they were read): the lowest wins,
 the DICOM angles' within :data:`OBJECTIVE_TIE` of it, so the result is never worse, by the
 objective, than the acquisition's own geometry optimised alike.
@@ -51,13 +52,15 @@ def optimise_from_starts(
     *,
     keep: Sequence[str] = (),
     objective: Objective = Objective(),
+    read_at: tuple[str, np.ndarray] | None = None,
     monitor: Monitor | None = None,
 ) -> dict[str, TTOResult]:
-    """One patient pose optimised from several starts ``{name: X}`` ``(4, 4)``: every start through the
-    coarse steps (to its first full-size evaluation, after the first common-axis search); there, with
-    ``objective.read_opacified``, the opacified vessels are read at the pose of the start of lowest loss
-    (:func:`.tto.restrict_to_opacified`); then the starts named in ``keep`` and the best others by the
-    loss there (``schedule.finalists`` in all) run to the end. Returns every run by name; a run stopped
+    """One patient pose optimised from several starts ``{name: X}`` ``(4, 4)``: with ``objective.read_opacified``
+    the opacified vessels are read (:func:`.tto.restrict_to_opacified`) at ``read_at`` (a name and a patient pose
+    ``(4, 4)``: the networks' estimate) before any step, else (None, or too few vessels passed there) after the coarse
+    steps at the pose of the start of lowest loss; every start runs through the coarse steps (to its first
+    full-size evaluation, after the first common-axis search); then the starts named in ``keep`` and the best
+    others by the loss there (``schedule.finalists`` in all) run to the end. Returns every run by name; a run stopped
     after the coarse steps has ``stopped_at`` set. ``views`` give the targets (their poses only choose
     the CTA level and whether a view has a vessel term)."""
     monitor = monitor or Monitor()
@@ -68,6 +71,8 @@ def optimise_from_starts(
     images = TTOImages(renderer, views, objective)
     runs = {name: TTORun(images, view_poses(X, rig), schedule, rig, False, renderer.device) for name, X in starts.items()}
     first = next(iter(runs.values()))
+    read = bool(objective.read_opacified and read_at) and restrict_to_opacified(
+        runs, {**starts, read_at[0]: read_at[1]}, read_at[0], rig, 0)
     n_final = max(schedule.finalists, len(keep))
     ranking: dict[str, float] = {}
     finalists, offset, parts = names, 0, len(names)
@@ -81,9 +86,10 @@ def optimise_from_starts(
             ranking = there
             ranked = sorted((k for k in names if k not in keep), key=ranking.get)
             finalists = list(keep) + ranked[:n_final - len(keep)]
-        if objective.read_opacified:
+        if objective.read_opacified and not read:
             leader = min(there, key=there.get)
-            restrict_to_opacified({k: runs[k] for k in finalists}, runs[leader], leader, rig, first.coarse)
+            restrict_to_opacified({k: runs[k] for k in finalists}, {k: runs[k].patient_at(first.coarse) for k in {*finalists, leader}},
+                                  leader, rig, first.coarse)
     for j, name in enumerate(finalists):
         runs[name].advance(first.n + 1, monitor.part(offset + j, parts, f"from {name}"))
     out = {name: run.finish(stopped_at=None if name in finalists else run.it, ranking_loss=ranking.get(name))
@@ -117,12 +123,13 @@ def tried_starts(starts: Starts, count: int) -> dict[str, np.ndarray]:
 
 
 def run_tournament(renderer: Renderer, tto_renderer: TorchRenderer, views: Mapping[str, PreparedDSA], starts: Starts,
-                   rig: Mapping[str, np.ndarray], schedule: TTOSchedule, objective: Objective, monitor: Monitor) -> Tournament:
+                   rig: Mapping[str, np.ndarray], schedule: TTOSchedule, objective: Objective, monitor: Monitor, *,
+                   estimate: tuple[str, np.ndarray] | None = None) -> Tournament:
     """The TTO (``schedule``, ``objective``) from the starts :func:`tried_starts` picks (``schedule.starts``), the
-    DICOM angles' among the finalists; the finalists judged by the objective rendered through ``renderer`` (the
-    engine's own kernel)."""
+    DICOM angles' among the finalists, the opacified vessels read at the networks' ``estimate`` (name, patient pose);
+    the finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
     runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), tried_starts(starts, schedule.starts),
-                                rig, schedule, keep=(DICOM_START,), objective=objective, monitor=monitor)
+                                rig, schedule, keep=(DICOM_START,), objective=objective, read_at=estimate, monitor=monitor)
     selection = next((r.vessel_selection for r in runs.values() if r.vessel_selection), None)
     judge = renderer if selection is None else make_renderer(selection.volume, renderer.engine,
                                                                   str(getattr(renderer, "device", "cpu")))

@@ -424,25 +424,27 @@ class TTORun:
                          vessel_selection=self.vessel_selection, **fields)
 
 
-def restrict_to_opacified(runs: Mapping[str, TTORun], leader: TTORun, name: str, rig: Mapping[str, np.ndarray],
-                          it: int) -> None:
-    """Read the opacified vessels (``opacified.read_opacified``) at the patient pose the run ``leader`` (from start
-    ``name``) reached at iteration ``it``; each of ``runs`` (patient-pose runs over one :class:`TTOImages`) whose pose there places the
-    vessels within ``OPACIFIED_NEAR_MM`` of it renders the vessel channel from them alone from now on, its best
-    pose so far scored again with that objective, and holds the selection (:attr:`TTOResult.vessel_selection`)."""
-    images = leader.images
+def restrict_to_opacified(runs: Mapping[str, TTORun], patients: Mapping[str, np.ndarray], name: str,
+                          rig: Mapping[str, np.ndarray], it: int) -> bool:
+    """Read the opacified vessels (``opacified.read_opacified``) at the patient pose ``patients[name]`` (``(4, 4)``;
+    a start's, or where a run reached at iteration ``it``); each of ``runs`` (patient-pose runs over one
+    :class:`TTOImages`) whose pose in ``patients`` places the vessels within ``OPACIFIED_NEAR_MM`` of it renders the
+    vessel channel from them alone from now on, its best pose so far scored again with that objective, and holds the
+    selection (:attr:`TTOResult.vessel_selection`). Returns whether a selection was applied."""
+    images = next(iter(runs.values())).images
     views = [(v.name, v.vessels, v.detector) for v in images.views if images.vessel_term[v.name]]
     if not views:
-        return
-    selection = read_opacified(images.renderer.volume, leader.patient_at(it), rig, views, start=name, iteration=it)
+        return False
+    selection = read_opacified(images.renderer.volume, patients[name], rig, views, start=name, iteration=it)
     if selection is None or not selection.applied:
-        return
+        return False
     restricted = images.rebound(TorchRenderer(selection.volume, images.renderer.device))
-    for run in runs.values():
-        if vessel_shift_mm(images.renderer.volume, selection, run.patient_at(it)) <= OPACIFIED_NEAR_MM:
+    for key, run in runs.items():
+        if vessel_shift_mm(images.renderer.volume, selection, patients[key]) <= OPACIFIED_NEAR_MM:
             run.images = restricted
             run.rescore_best()
             run.vessel_selection = selection
+    return True
 
 
 def test_time_optimise(
@@ -472,7 +474,7 @@ def test_time_optimise(
         if run.coarse > 0:
             run.advance(run.coarse + 1, monitor.part(0, parts, "coarse"))
             if objective.read_opacified:
-                restrict_to_opacified({"start": run}, run, "start", rig, run.coarse)
+                restrict_to_opacified({"start": run}, {"start": run.patient_at(run.coarse)}, "start", rig, run.coarse)
         run.advance(run.n + 1, monitor.part(parts - 1, parts, "full size"))
     monitor.step("tto", 1.0, "done")
     return run.finish()
