@@ -9,12 +9,13 @@ moves (experiments/tto_objective/objective.md). Without labels, each vessel voxe
 every view at a patient pose close to the truth and kept when every view's vessel image
 shows contrast where it lands (:func:`read_opacified`): a vessel the run does not fill lands
 on background in at least one of two orthogonal views, unless it overlaps a filled one in
-both. The test-time optimisation reads the selection once, before its first step, at the networks'
-estimate (greedy Refine + search; read after the coarse steps at the pose of its best start, the
-earlier design, the selection was consistent with wherever that start had gone: on validation phantoms
-6010-6019, default path, this change alone took the median carotid mPCD from 1.89 to 1.00 mm), and the runs that start near that
-pose use it from their first step (``tournament.optimise_from_starts``); far runs keep every vessel,
-whose wider net guides them better.
+both. The test-time optimisation reads the selection once, before its first step, at the
+networks' estimate (greedy Refine + search), and the runs that start near that pose use it from
+their first step (``tournament.optimise_from_starts``); far runs keep every vessel, whose wider
+net guides them better. Read after the coarse steps at the pose of the best start (the earlier
+design), the selection agreed with wherever that start had gone: on validation phantoms
+6010-6019, default path, reading it at the estimate alone took the median carotid mPCD from
+1.89 to 1.00 mm.
 """
 
 from __future__ import annotations
