@@ -123,7 +123,7 @@ class Registration:
     the candidate starts with their objective (``starts``), the TTO run from each distinct start
     (``tto_runs``; those not among the tournament's finalists stopped after the coarse steps) with
     the finalists' final objective (``tto_objective``), the start the result came from
-    (``chosen_start``); the opacified vessels the TTO read after its coarse steps
+    (``chosen_start``); the opacified vessels the TTO read (at the networks' estimate, or after its coarse steps)
     (``vessel_selection``, ``opacified.py``; None: not read), by which alone ``tto_objective``
     compares the finalists; the consistency ``checks`` of the two views; the start of the
     greedy Refine that won (``refine_start``, :func:`.starts.refine_starts`) with every start's

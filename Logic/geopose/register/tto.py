@@ -14,8 +14,9 @@ NAdam with a OneCycle schedule. Coarse to fine: the first ``coarse_fraction`` of
 render at half the image size (a coarser CTA level, a quarter of the rays), the rest at
 full size. The result is the pose of best full-size objective seen, the start included
 (per view for independent views, jointly for a patient pose; the paper's schedule keeps
-each view's best mNCC). After the coarse steps a patient pose's vessel term keeps the vessels
-the runs show opacified (:func:`restrict_to_opacified`, ``opacified.py``); the common-axis
+each view's best mNCC). A patient pose's vessel term keeps the vessels the runs show opacified
+(:func:`restrict_to_opacified`, ``opacified.py``): read at the networks' estimate before the first
+step in the tournament, after the coarse steps in a single run; the common-axis
 search (``axis_search.py``) moves it along the valley the objective is flattest in; several
 starts run as a tournament (``tournament.py``). Poses in and out are numpy
 ``(4, 4)`` (centred CTA frame, mm); this is the one stage that needs PyTorch.
