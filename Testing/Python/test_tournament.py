@@ -39,8 +39,8 @@ def test_the_tto_tries_the_dicom_angles_and_the_best_other_starts():
 def test_the_opacified_vessels_are_read_at_the_networks_estimate_before_any_step(unilateral_case):
     """With ``read_at`` (the networks' estimate) the tournament reads the opacified vessels there before its first
     step: the run that starts there holds that selection (iteration 0, the estimate's name), a start 20 mm off keeps
-    every vessel; read 80 mm off too few pass, and the selection is read after the coarse steps instead, at the
-    start of lowest loss."""
+    every vessel; read 80 mm off (too few pass), or where no start lies near, the selection is read after the coarse
+    steps instead, at the start of lowest loss."""
     from register_helpers import _prepared
 
     from geopose.geometry import invert
@@ -66,3 +66,6 @@ def test_the_opacified_vessels_are_read_at_the_networks_estimate_before_any_step
     late = optimise_from_starts(renderer, views, starts, rig, schedule, keep=("DICOM angles",), read_at=("far", far))
     read = next(r.vessel_selection for r in late.values() if r.vessel_selection is not None)
     assert read.iteration == schedule.coarse_steps() and read.start in starts
+    alone = optimise_from_starts(renderer, views, {"DICOM angles": off}, rig, schedule, keep=("DICOM angles",),
+                                 read_at=("estimate", X))
+    assert alone["DICOM angles"].vessel_selection.iteration == schedule.coarse_steps()

@@ -57,8 +57,8 @@ def optimise_from_starts(
 ) -> dict[str, TTOResult]:
     """One patient pose optimised from several starts ``{name: X}`` ``(4, 4)``: with ``objective.read_opacified``
     the opacified vessels are read (:func:`.tto.restrict_to_opacified`) at ``read_at`` (a name and a patient pose
-    ``(4, 4)``: the networks' estimate) before any step, else (None, or too few vessels passed there) after the coarse
-    steps at the pose of the start of lowest loss; every start runs through the coarse steps (to its first
+    ``(4, 4)``: the networks' estimate) before any step, else (None, too few vessels passed there, or no start lies
+    near it) after the coarse steps at the pose of the start of lowest loss; every start runs through the coarse steps (to its first
     full-size evaluation, after the first common-axis search); then the starts named in ``keep`` and the best
     others by the loss there (``schedule.finalists`` in all) run to the end. Returns every run by name; a run stopped
     after the coarse steps has ``stopped_at`` set. ``views`` give the targets (their poses only choose

@@ -431,7 +431,7 @@ def restrict_to_opacified(runs: Mapping[str, TTORun], patients: Mapping[str, np.
     a start's, or where a run reached at iteration ``it``); each of ``runs`` (patient-pose runs over one
     :class:`TTOImages`) whose pose in ``patients`` places the vessels within ``OPACIFIED_NEAR_MM`` of it renders the
     vessel channel from them alone from now on, its best pose so far scored again with that objective, and holds the
-    selection (:attr:`TTOResult.vessel_selection`). Returns whether a selection was applied."""
+    selection (:attr:`TTOResult.vessel_selection`). Returns whether a run took a selection."""
     images = next(iter(runs.values())).images
     views = [(v.name, v.vessels, v.detector) for v in images.views if images.vessel_term[v.name]]
     if not views:
@@ -439,13 +439,13 @@ def restrict_to_opacified(runs: Mapping[str, TTORun], patients: Mapping[str, np.
     selection = read_opacified(images.renderer.volume, patients[name], rig, views, start=name, iteration=it)
     if selection is None or not selection.applied:
         return False
-    restricted = images.rebound(TorchRenderer(selection.volume, images.renderer.device))
-    for key, run in runs.items():
-        if vessel_shift_mm(images.renderer.volume, selection, patients[key]) <= OPACIFIED_NEAR_MM:
-            run.images = restricted
-            run.rescore_best()
-            run.vessel_selection = selection
-    return True
+    near = [key for key in runs if vessel_shift_mm(images.renderer.volume, selection, patients[key]) <= OPACIFIED_NEAR_MM]
+    restricted = images.rebound(TorchRenderer(selection.volume, images.renderer.device)) if near else None
+    for key in near:
+        runs[key].images = restricted
+        runs[key].rescore_best()
+        runs[key].vessel_selection = selection
+    return bool(near)
 
 
 def test_time_optimise(
