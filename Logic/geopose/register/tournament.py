@@ -71,8 +71,7 @@ def optimise_from_starts(
     images = TTOImages(renderer, views, objective)
     runs = {name: TTORun(images, view_poses(X, rig), schedule, rig, False, renderer.device) for name, X in starts.items()}
     first = next(iter(runs.values()))
-    read = bool(objective.read_opacified and read_at) and restrict_to_opacified(
-        runs, {**starts, read_at[0]: read_at[1]}, read_at[0], rig, 0)
+    read = bool(objective.read_opacified and read_at) and restrict_to_opacified(runs, starts, read_at, rig, 0)
     n_final = max(schedule.finalists, len(keep))
     ranking: dict[str, float] = {}
     finalists, offset, parts = names, 0, len(names)
@@ -88,8 +87,8 @@ def optimise_from_starts(
             finalists = list(keep) + ranked[:n_final - len(keep)]
         if objective.read_opacified and not read:
             leader = min(there, key=there.get)
-            restrict_to_opacified({k: runs[k] for k in finalists}, {k: runs[k].patient_at(first.coarse) for k in {*finalists, leader}},
-                                  leader, rig, first.coarse)
+            restrict_to_opacified({k: runs[k] for k in finalists}, {k: runs[k].patient_at(first.coarse) for k in finalists},
+                                  (leader, runs[leader].patient_at(first.coarse)), rig, first.coarse)
     for j, name in enumerate(finalists):
         runs[name].advance(first.n + 1, monitor.part(offset + j, parts, f"from {name}"))
     out = {name: run.finish(stopped_at=None if name in finalists else run.it, ranking_loss=ranking.get(name))

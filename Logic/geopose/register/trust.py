@@ -29,8 +29,8 @@ from .quality import VESSEL_NCC_FAILED
 from .starts import Starts
 from .tournament import Tournament
 
-__all__ = ["WEAK_OBJECTIVE", "COMPUTED_VESSELS_OBJECTIVE", "NO_VESSELS_NOTE", "APPROXIMATE_VESSELS_NOTE", "WEAK_EVIDENCE_NOTE", "MISSED_VESSELS_NOTE", "Kept",
-           "stage_agreement", "tto_distrusted", "kept_result"]
+__all__ = ["WEAK_OBJECTIVE", "COMPUTED_VESSELS_OBJECTIVE", "NO_VESSELS_NOTE", "APPROXIMATE_VESSELS_NOTE", "WEAK_EVIDENCE_NOTE",
+           "MISSED_VESSELS_NOTE", "Kept", "stage_agreement", "tto_distrusted", "kept_result"]
 
 #: Objective (summed over both views; lower is better) above which the runs hold too little image evidence
 #: to choose between starts: the networks' estimate is kept. Set between the weakest validation result with

@@ -425,10 +425,10 @@ class TTORun:
                          vessel_selection=self.vessel_selection, **fields)
 
 
-def restrict_to_opacified(runs: Mapping[str, TTORun], patients: Mapping[str, np.ndarray], name: str,
+def restrict_to_opacified(runs: Mapping[str, TTORun], patients: Mapping[str, np.ndarray], at: tuple[str, np.ndarray],
                           rig: Mapping[str, np.ndarray], it: int) -> bool:
-    """Read the opacified vessels (``opacified.read_opacified``) at the patient pose ``patients[name]`` (``(4, 4)``;
-    a start's, or where a run reached at iteration ``it``); each of ``runs`` (patient-pose runs over one
+    """Read the opacified vessels (``opacified.read_opacified``) at ``at`` (a name and a patient pose ``(4, 4)``: a
+    start's, or where a run reached at iteration ``it``); each of ``runs`` (patient-pose runs over one
     :class:`TTOImages`) whose pose in ``patients`` places the vessels within ``OPACIFIED_NEAR_MM`` of it renders the
     vessel channel from them alone from now on, its best pose so far scored again with that objective, and holds the
     selection (:attr:`TTOResult.vessel_selection`). Returns whether a run took a selection."""
@@ -436,7 +436,7 @@ def restrict_to_opacified(runs: Mapping[str, TTORun], patients: Mapping[str, np.
     views = [(v.name, v.vessels, v.detector) for v in images.views if images.vessel_term[v.name]]
     if not views:
         return False
-    selection = read_opacified(images.renderer.volume, patients[name], rig, views, start=name, iteration=it)
+    selection = read_opacified(images.renderer.volume, at[1], rig, views, start=at[0], iteration=it)
     if selection is None or not selection.applied:
         return False
     near = [key for key in runs if vessel_shift_mm(images.renderer.volume, selection, patients[key]) <= OPACIFIED_NEAR_MM]
@@ -475,7 +475,8 @@ def test_time_optimise(
         if run.coarse > 0:
             run.advance(run.coarse + 1, monitor.part(0, parts, "coarse"))
             if objective.read_opacified:
-                restrict_to_opacified({"start": run}, {"start": run.patient_at(run.coarse)}, "start", rig, run.coarse)
+                reached = run.patient_at(run.coarse)
+                restrict_to_opacified({"start": run}, {"start": reached}, ("start", reached), rig, run.coarse)
         run.advance(run.n + 1, monitor.part(parts - 1, parts, "full size"))
     monitor.step("tto", 1.0, "done")
     return run.finish()
