@@ -28,10 +28,11 @@ import numpy as np
 from ..geometry.detector import Detector
 from ..geometry.poses import project_points
 from ..images import bilinear_sample, gaussian_blur
+from ..render.renderer import Renderer, make_renderer
 from ..render.volume import RenderVolume
 
 __all__ = ["OPACIFIED_BLUR_PX", "OPACIFIED_THRESHOLD", "OPACIFIED_MIN_FRACTION", "OPACIFIED_NEAR_MM", "VesselSelection",
-           "read_opacified", "vessel_shift_mm"]
+           "read_opacified", "selection_judge", "vessel_shift_mm"]
 
 #: Which of the CTA's vessels the runs show opacified (``register/opacified.py``). A vessel voxel is
 #: kept when, in every view with a vessel image, that image (blurred by ``OPACIFIED_BLUR_PX`` at the TTO
@@ -117,3 +118,11 @@ def read_opacified(
     keep[tuple(kji[passed if applied else slice(None)].T)] = True
     return VesselSelection(keep, len(kji), int(passed.sum()) if applied else len(kji), bool(applied), start, iteration,
                            np.asarray(patient, dtype=np.float64), volume.with_vessels(keep) if applied else None)
+
+
+def selection_judge(renderer: Renderer, selection: VesselSelection | None) -> Renderer:
+    """What a result read with ``selection`` is judged by: ``renderer``, or (the selection applied) a renderer of its
+    engine and device whose vessel channel holds the kept vessels alone."""
+    if selection is None or not selection.applied:
+        return renderer
+    return make_renderer(selection.volume, renderer.engine, str(getattr(renderer, "device", "cpu")))

@@ -19,8 +19,8 @@ its own module:
 7. ``trust.kept_result``: the networks' estimate is kept where the TTO's result is not to be
    trusted (on a given segmentation its vessel NCC per view, ``evidence.view_evidence``, is read for
    that), and without vessel evidence the move from the DICOM angles is bounded;
-8. ``mirror.mirror_test``: with a given segmentation, the result weighed against the CTA mirrored
-   left-right;
+8. ``mirror.mirror_test``: the result weighed against the CTA mirrored left-right, optimised from the
+   networks' estimate;
 9. ``scoring.score_views``: final mNCC, silhouette Dice and quality flag per view.
 
 ``independent_views=True`` runs the published pipeline instead (``published.py``). Poses between
@@ -121,9 +121,10 @@ def register_case(
                            tto_vessel_ncc=None if measured is None else {key: ev.vessel_ncc for key, (_, ev) in measured.items()})
     notes += [kept.kept_learned] if kept.kept_learned else []
     mirror = None
-    if vessel_evidence and segmentation is not None and tournament is not None:
+    if vessel_evidence and tournament is not None:
         with clock("mirror", engine):
-            mirror = mirror_test(renderer, case.views, kept.patient_pose, rig, options.objective, engine.device, monitor)
+            mirror = mirror_test(renderer, case.views, tournament.objectives[tournament.chosen], X_learned, rig,
+                                 options.objective, engine.device, monitor)
     registration = Registration(
         "biplane-rigid", rig, patient_pose=kept.patient_pose, starts=dict(starts.objectives), chosen_start=kept.start,
         tto_runs=dict(tournament.runs) if tournament else {}, tto_objective=dict(tournament.objectives) if tournament else {},

@@ -11,8 +11,8 @@ Rule (thresholds named below; set on validation phantom runs, provisional for re
   case failed (the pipeline passes its reasons: the network's lateral side against the
   acquisition angle's, two views placing the patient more than ``VIEW_DISAGREEMENT_MM``
   apart along the axis both see);
-* ``failed`` also when the CTA mirrored left-right explains the runs about as well as the result or
-  better (``mirror.py``), or when the vessel NCC at the final pose is below ``VESSEL_NCC_FAILED`` (the CTA's vessels are
+* ``failed`` also when the CTA mirrored left-right explains the runs better than the result by more than
+  ``mirror.MIRROR_LOSS_MARGIN`` (``mirror.py``), or when the vessel NCC at the final pose is below ``VESSEL_NCC_FAILED`` (the CTA's vessels are
   not where the runs show them: a wrong pose, or runs of another patient);
   ``doubtful`` when it is below ``VESSEL_NCC_OK``;
 * ``ok`` otherwise.
@@ -59,8 +59,8 @@ def assess(
     ``mirror``: the case's mirrored-CTA test; ``doubts``: failed consistency checks, worded)."""
     failed, doubtful = [], list(doubts)
     if mirror is not None and mirror.mirrored:
-        failed.append(f"the CTA mirrored left-right explains the runs about as well or better (objective "
-                      f"{mirror.mirrored_loss:.3f} against {mirror.loss:.3f}): check the CTA's left-right orientation (its "
+        failed.append(f"the CTA mirrored left-right explains the runs better (objective {mirror.mirrored_loss:.3f} "
+                      f"against {mirror.loss:.3f}, both views summed): check the CTA's left-right orientation (its "
                       "header) and that the CTA and the runs are of one patient")
     vessel_ncc = None if evidence is None else evidence.vessel_ncc
     if vessel_ncc is not None and vessel_ncc < VESSEL_NCC_FAILED:

@@ -19,11 +19,11 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..dsa import PreparedDSA
-from ..render.renderer import Renderer, TorchRenderer, make_renderer
+from ..render.renderer import Renderer, TorchRenderer
 from .biplane import view_poses
 from ..options import Objective, TTOSchedule
 from .objective import pair_objective
-from .opacified import VesselSelection
+from .opacified import VesselSelection, selection_judge
 from .progress import Monitor
 from .starts import DICOM_START, Starts
 from .tto import TTOImages, TTOResult, TTORun, TTOView, restrict_to_opacified, tto_views
@@ -130,8 +130,7 @@ def run_tournament(renderer: Renderer, tto_renderer: TorchRenderer, views: Mappi
     runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), tried_starts(starts, schedule.starts),
                                 rig, schedule, keep=(DICOM_START,), objective=objective, read_at=estimate, monitor=monitor)
     selection = next((r.vessel_selection for r in runs.values() if r.vessel_selection), None)
-    judge = renderer if selection is None else make_renderer(selection.volume, renderer.engine,
-                                                                  str(getattr(renderer, "device", "cpu")))
+    judge = selection_judge(renderer, selection)
     objectives = {name: pair_objective(judge, run.poses, views, objective) for name, run in runs.items()
                   if run.stopped_at is None}
     return Tournament(runs, objectives, chosen_result(objectives), selection)

@@ -15,8 +15,8 @@ render at half the image size (a coarser CTA level, a quarter of the rays), the 
 full size. The result is the pose of best full-size objective seen, the start included
 (per view for independent views, jointly for a patient pose; the paper's schedule keeps
 each view's best mNCC). A patient pose's vessel term keeps the vessels the runs show opacified
-(:func:`restrict_to_opacified`, ``opacified.py``): read at the networks' estimate before the first
-step in the tournament, after the coarse steps in a single run; the common-axis
+(:func:`restrict_to_opacified`, ``opacified.py``): read before the first step, at the networks' estimate in
+the tournament and at its own start in a single run; the common-axis
 search (``axis_search.py``) moves it along the valley the objective is flattest in; several
 starts run as a tournament (``tournament.py``). Poses in and out are numpy
 ``(4, 4)`` (centred CTA frame, mm); this is the one stage that needs PyTorch.
@@ -460,8 +460,8 @@ def test_time_optimise(
 ) -> TTOResult:
     """Optimise the poses of ``views`` through ``renderer``'s differentiable kernel: one patient
     pose when ``rig`` (``{view: A_v}``) is given (the views' start poses must be ``X @ A_v`` of one
-    ``X``; after the coarse steps, with ``objective.read_opacified``, the vessel term keeps the vessels
-    the runs show opacified), else each view's own (``schedule.paper`` for the published schedule).
+    ``X``; with ``objective.read_opacified`` the vessel term keeps the vessels the runs show opacified, read
+    at the start, or after the coarse steps where too few pass there), else each view's own (``schedule.paper`` for the published schedule).
     ``tournament.optimise_from_starts`` runs one patient pose from several starts."""
     monitor = monitor or Monitor()
     images = TTOImages(renderer, views, objective)
@@ -471,10 +471,11 @@ def test_time_optimise(
     else:
         X = patient_pose(views[0].pose, rig[views[0].name])
         run = TTORun(images, view_poses(X, rig), schedule, rig, False, renderer.device)
+        read = objective.read_opacified and restrict_to_opacified({"start": run}, {"start": X}, ("start", X), rig, 0)
         parts = 2 if run.coarse > 0 else 1
         if run.coarse > 0:
             run.advance(run.coarse + 1, monitor.part(0, parts, "coarse"))
-            if objective.read_opacified:
+            if objective.read_opacified and not read:
                 reached = run.patient_at(run.coarse)
                 restrict_to_opacified({"start": run}, {"start": reached}, ("start", reached), rig, run.coarse)
         run.advance(run.n + 1, monitor.part(parts - 1, parts, "full size"))
