@@ -60,8 +60,8 @@ def assess(
     failed, doubtful = [], list(doubts)
     if mirror is not None and mirror.mirrored:
         failed.append(f"the CTA mirrored left-right explains the runs better (objective {mirror.mirrored_loss:.3f} "
-                      f"against {mirror.loss:.3f}, both views summed): check the CTA's left-right orientation (its "
-                      "header) and that the CTA and the runs are of one patient")
+                      f"against {mirror.loss:.3f}, both views summed): its left and right may be swapped (check the CTA's "
+                      "header, and that the CTA and the runs are of one patient), or the registration missed its best fit")
     vessel_ncc = None if evidence is None else evidence.vessel_ncc
     if vessel_ncc is not None and vessel_ncc < VESSEL_NCC_FAILED:
         failed.append(f"vessel NCC {vessel_ncc:.2f} < {VESSEL_NCC_FAILED}: the CTA's vessels are not where the run shows "
