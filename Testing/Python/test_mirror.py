@@ -11,7 +11,7 @@ from register_helpers import _prepared
 from geopose.geometry import invert
 from geopose.register import TTOSchedule, test_time_optimise as run_tto
 from geopose.register.biplane import nominal_poses
-from geopose.cta.symmetry import midsagittal_plane
+from geopose.cta.symmetry import Midplane, midsagittal_plane
 from geopose.register.mirror import MIRROR_LOSS_MARGIN, MIRROR_TTO_ITERATIONS, MirrorTest, mirror_test, mirrored_volume
 from geopose.register.objective import pair_objective
 from geopose.register.opacified import selection_judge
@@ -54,18 +54,20 @@ def test_the_mirrored_hypothesis_reflects_the_head_across_its_own_midplane():
     assert abs(float((plane.point_lps_mm - centre) @ plane.normal_lps)) < 1.5 and plane.symmetry_ncc > 0.9
     head = cta.array > 0
     volume = RenderVolume(cta, {"cranium": cta.like(head.astype(np.uint8)), "vessels": cta.like(rod.astype(np.uint8))})
-    mirrored = mirrored_volume(volume)
+    mirrored = mirrored_volume(volume, plane)
     np.testing.assert_allclose(_centroid_lps(mirrored.mask("cranium")), _centroid_lps(head), atol=1.0)
     np.testing.assert_allclose(_centroid_lps(mirrored.mask("vessels")), centre + rotation @ [25.0, 0.0, 0.0], atol=1.5)
     assert mirrored.cta.array[tuple(np.argwhere(mirrored.mask("vessels")).mean(axis=0).round().astype(int))] > 200.0
-    twice = mirrored_volume(mirrored)
+    twice = mirrored_volume(mirrored, midsagittal_plane(mirrored.cta))
     np.testing.assert_allclose(_centroid_lps(twice.mask("vessels")), _centroid_lps(rod), atol=1.5)
 
 
 def test_a_mirror_test_fails_a_result_only_when_the_mirror_image_explains_the_runs_better():
-    assert MirrorTest(-1.00, -0.90).margin == pytest.approx(0.10) and not MirrorTest(-1.00, -0.90).mirrored
-    assert not MirrorTest(-1.00, -1.00 - 0.5 * MIRROR_LOSS_MARGIN).mirrored
-    assert MirrorTest(-1.00, -1.00 - 2.0 * MIRROR_LOSS_MARGIN).mirrored
+    plane = Midplane(np.array([1.0, 0.0, 0.0]), np.zeros(3), 0.0, 0.0, 0.95)
+    assert MirrorTest(-1.00, -0.90, plane).margin == pytest.approx(0.10) and not MirrorTest(-1.00, -0.90, plane).mirrored
+    assert not MirrorTest(-1.00, -1.00 - 0.5 * MIRROR_LOSS_MARGIN, plane).mirrored
+    assert MirrorTest(-1.00, -1.00 - 2.0 * MIRROR_LOSS_MARGIN, plane).mirrored
+    assert MirrorTest(-1.00, -0.90, plane).as_dict()["plane"]["symmetry_ncc"] == 0.95  # the record holds the plane
 
 
 def test_the_mirror_test_tells_a_one_sided_injection_from_its_mirror_image(unilateral_case):
@@ -83,6 +85,6 @@ def test_the_mirror_test_tells_a_one_sided_injection_from_its_mirror_image(unila
 
     correct = mirror_test(renderer, prep.views, registered(renderer), X, rig)
     assert correct.margin > MIRROR_LOSS_MARGIN and not correct.mirrored, correct.as_dict()
-    swapped = TorchRenderer(mirrored_volume(renderer.volume))
+    swapped = TorchRenderer(mirrored_volume(renderer.volume, midsagittal_plane(renderer.volume.cta)))
     flipped = mirror_test(swapped, prep.views, registered(swapped), X, rig)
     assert flipped.mirrored and flipped.margin < -MIRROR_LOSS_MARGIN, flipped.as_dict()

@@ -22,7 +22,7 @@ from typing import Final, Mapping
 
 import numpy as np
 
-from ..cta.symmetry import midsagittal_plane, mirrored_across
+from ..cta.symmetry import Midplane, midsagittal_plane, mirrored_across
 from ..dsa import PreparedDSA
 from ..render.renderer import Renderer, TorchRenderer, make_renderer
 from ..render.volume import RenderVolume
@@ -48,10 +48,12 @@ MIRROR_LOSS_MARGIN: Final = 0.05
 class MirrorTest:
     """The objective (both views summed) of the result (``loss``) and of the mirrored CTA after its short
     TTO (``mirrored_loss``); ``margin`` = mirrored less result: below ``-MIRROR_LOSS_MARGIN``, the
-    mirrored CTA explains the runs better than the CTA as given."""
+    mirrored CTA explains the runs better than the CTA as given; ``plane``: the head's midsagittal plane it
+    was mirrored across."""
 
     loss: float
     mirrored_loss: float
+    plane: Midplane
 
     @property
     def margin(self) -> float:
@@ -63,13 +65,12 @@ class MirrorTest:
 
     def as_dict(self) -> dict:
         return {"loss": self.loss, "mirrored_loss": self.mirrored_loss, "margin": self.margin, "mirrored": self.mirrored,
-                "iterations": MIRROR_TTO_ITERATIONS, "loss_margin": MIRROR_LOSS_MARGIN}
+                "iterations": MIRROR_TTO_ITERATIONS, "loss_margin": MIRROR_LOSS_MARGIN, "plane": self.plane.as_dict()}
 
 
-def mirrored_volume(volume: RenderVolume) -> RenderVolume:
-    """``volume``'s CTA and masks reflected across the head's own midsagittal plane (``cta.symmetry``), same grid
-    and header: the head stays where it is, its sides swapped."""
-    plane = midsagittal_plane(volume.cta)
+def mirrored_volume(volume: RenderVolume, plane: Midplane) -> RenderVolume:
+    """``volume``'s CTA and masks reflected across ``plane``, the head's own midsagittal plane
+    (``cta.symmetry.midsagittal_plane``), same grid and header: the head stays where it is, its sides swapped."""
     masks = {name: mirrored_across(volume.cta.like(volume.mask(name).astype(np.uint8)), plane, labels=True)
              for name in ("cranium", "vessels") if volume.mask(name) is not None}
     return RenderVolume(mirrored_across(volume.cta, plane), masks, finest_spacing_mm=volume.finest_spacing_mm)
@@ -85,8 +86,9 @@ def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], loss: floa
     from .tto import test_time_optimise, tto_views  # PyTorch, only when the test runs
 
     (monitor or Monitor()).step("mirror", 0.0, "weighing the result against the CTA mirrored left-right")
-    mirrored = mirrored_volume(renderer.volume)
+    plane = midsagittal_plane(renderer.volume.cta)
+    mirrored = mirrored_volume(renderer.volume, plane)
     result = test_time_optimise(TorchRenderer(mirrored, device), tto_views(views, view_poses(estimate, rig)),
                                 TTOSchedule(MIRROR_TTO_ITERATIONS), objective=objective, rig=rig)
     judge = selection_judge(make_renderer(mirrored, renderer.engine, device), result.vessel_selection)
-    return MirrorTest(loss, pair_objective(judge, result.poses, views, objective))
+    return MirrorTest(loss, pair_objective(judge, result.poses, views, objective), plane)
