@@ -1,6 +1,7 @@
 """Time the registration on a laptop-class CPU: per stage, per engine, at the CTA resolutions
 clinical scans come in, with peak memory, and under load.
 
+Every row runs the path a user takes: ``register_case`` with the CTA and the two runs, the masks computed.
 Rows (each a fresh process, so peak memory is that run's):
 * ``torch`` and ``onnxruntime`` engines on the 1 mm 256^3 demo phantom, every option at its
   default (25 TTO steps; the onnxruntime engine runs its TTO in torch);
@@ -38,7 +39,7 @@ from geopose.volume import Volume  # noqa: E402
 
 #: The paper's H100 runtimes (docs/conventions.md section 8), for comparison.
 PAPER_S = {"calibration + init": 0.0218, "refine": 0.147, "tto": 2.0}
-STAGES = ("prepare", "calibration", "init", "refine", "search", "tto", "score", "total")
+STAGES = ("prepare", "calibration", "init", "refine", "search", "tto", "mirror", "score", "total")
 MARKER = "<!-- bench:pipeline -->"
 
 _BLOCK_TORCH = """
@@ -65,7 +66,6 @@ from geopose.options import RegistrationOptions, TTOSchedule
 from geopose.register import register_case
 t0 = time.perf_counter()
 cta = load_cta(f"{folder}/cta.nii.gz")
-seg = load_cta(f"{folder}/vessels.nii.gz", check_hu=False)
 runs = {k: read_dsa(f"{folder}/dsa_{k}.dcm") for k in ("pa", "lat")}
 read_s = time.perf_counter() - t0
 def peak_rss_gb():
@@ -73,7 +73,7 @@ def peak_rss_gb():
     with open("/proc/self/status") as f:
         return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1e6
 rss_before = peak_rss_gb()
-result = register_case(cta, runs, segmentation=seg, options=RegistrationOptions(backend=backend, tto=TTOSchedule(iterations=iterations)))
+result = register_case(cta, runs, options=RegistrationOptions(backend=backend, tto=TTOSchedule(iterations=iterations)))
 out = dict(result.runtimes_s, read=read_s, peak_rss_gb=peak_rss_gb(),
            rss_after_reading_gb=rss_before, engine=result.engine, notes=result.notes,
            poses={k: v.final_pose.tolist() for k, v in result.views.items()})
@@ -93,15 +93,14 @@ def _run(folder: Path, backend: str, iterations: int, threads: int, *, block_tor
 
 
 def _upsample(folder: Path, out: Path) -> None:
-    """The case with its CTA (and vessel labels) on a 0.5 mm grid: each voxel split in eight."""
+    """The case with its CTA on a 0.5 mm grid: each voxel split in eight."""
     out.mkdir(parents=True, exist_ok=True)
-    for name in ("cta", "vessels"):
-        vol = load_cta(folder / f"{name}.nii.gz", check_hu=name == "cta")
-        fine = vol.array.repeat(2, 0).repeat(2, 1).repeat(2, 2)
-        affine = vol.ijk_to_ras.copy()
-        affine[:3, :3] /= 2.0
-        affine[:3, 3] -= 0.25 * (vol.ijk_to_ras[:3, :3] @ [1.0, 1.0, 1.0])  # keep the grid's physical extent
-        save_volume(Volume(fine, affine), out / f"{name}.nii.gz")
+    vol = load_cta(folder / "cta.nii.gz")
+    fine = vol.array.repeat(2, 0).repeat(2, 1).repeat(2, 2)
+    affine = vol.ijk_to_ras.copy()
+    affine[:3, :3] /= 2.0
+    affine[:3, 3] -= 0.25 * (vol.ijk_to_ras[:3, :3] @ [1.0, 1.0, 1.0])  # keep the grid's physical extent
+    save_volume(Volume(fine, affine), out / "cta.nii.gz")
     for name in ("dsa_pa.dcm", "dsa_lat.dcm"):
         (out / name).symlink_to(folder / name)
 
@@ -133,10 +132,6 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         case = Path(tmp) / "case"
         write_phantom(args.seed, case)
-        labels = load_cta(case / "labels.nii.gz", check_hu=False)
-        from geopose.phantom.labels import vessel_mask
-
-        save_volume(labels.like(vessel_mask(labels.array).astype("uint8")), case / "vessels.nii.gz")
         fine = Path(tmp) / "fine"
         _upsample(case, fine)
 

@@ -58,21 +58,27 @@ def resize_bilinear(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def block_mean(array: np.ndarray, factors: tuple[int, ...]) -> np.ndarray:
-    """Mean over blocks of ``factors`` (one per axis) of an array (edge blocks average what they hold), float32."""
+    """Mean over blocks of ``factors`` (one per axis) of an array (edge blocks average what they hold), float32.
+
+    Each axis sums its ``f`` strided slices in order (whole-array adds, no per-block reduction)."""
     out = np.asarray(array, dtype=np.float32)
     for axis, f in enumerate(factors):
         if f == 1:
             continue
-        n = out.shape[axis]
-        pad = (-n) % f
-        sums = np.add.reduceat(out, np.arange(0, n, f), axis=axis)
-        counts = np.full(sums.shape[axis], f, dtype=np.float32)
-        if pad:
-            counts[-1] = f - pad
-        shape = [1] * out.ndim
-        shape[axis] = -1
-        out = sums / counts.reshape(shape)
-    return out
+        along = np.moveaxis(out, axis, 0)
+        n = along.shape[0]
+        full = n - n % f
+        sums = along[0:full:f].copy()
+        for i in range(1, f):
+            sums += along[i:full:f]
+        sums /= np.float32(f)
+        if full < n:  # the edge block: the slices it holds
+            edge = along[full].copy()
+            for i in range(full + 1, n):
+                edge += along[i]
+            sums = np.concatenate((sums, (edge / np.float32(n - full))[None]))
+        out = np.moveaxis(sums, 0, axis)
+    return np.ascontiguousarray(out)
 
 
 def gaussian_blur(image: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:

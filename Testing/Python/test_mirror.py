@@ -15,6 +15,7 @@ from geopose.cta.symmetry import Midplane, midsagittal_plane
 from geopose.register.mirror import MIRROR_LOSS_MARGIN, MIRROR_TTO_ITERATIONS, MirrorTest, mirror_test, mirrored_volume
 from geopose.register.objective import pair_objective
 from geopose.register.opacified import selection_judge
+from geopose.register.tournament import Tournament
 from geopose.register.tto import tto_views
 from geopose.render.renderer import TorchRenderer
 from geopose.render.volume import RenderVolume
@@ -79,12 +80,17 @@ def test_the_mirror_test_tells_a_one_sided_injection_from_its_mirror_image(unila
     X = truth.poses["pa"] @ invert(rig["pa"])
     schedule = TTOSchedule(MIRROR_TTO_ITERATIONS)
 
-    def registered(r: TorchRenderer) -> float:  # the CTA's own fit from the estimate, as the tournament judges it
+    def registered(r: TorchRenderer) -> Tournament:  # the CTA's own fit from the estimate, as the tournament judges it
         own = run_tto(r, tto_views(prep.views, truth.poses), schedule, rig=rig)
-        return pair_objective(selection_judge(r, own.vessel_selection), own.poses, prep.views)
+        loss = pair_objective(selection_judge(r, own.vessel_selection), own.poses, prep.views)
+        return Tournament({"estimate": own}, {"estimate": loss}, "estimate", own.vessel_selection)
 
-    correct = mirror_test(renderer, prep.views, registered(renderer), X, rig)
-    assert correct.margin > MIRROR_LOSS_MARGIN and not correct.mirrored, correct.as_dict()
     swapped = TorchRenderer(mirrored_volume(renderer.volume, midsagittal_plane(renderer.volume.cta)))
-    flipped = mirror_test(swapped, prep.views, registered(swapped), X, rig)
-    assert flipped.mirrored and flipped.margin < -MIRROR_LOSS_MARGIN, flipped.as_dict()
+    tournaments = {"correct": registered(renderer), "swapped": registered(swapped)}
+    for factors in (None, (2, 2, 2)):  # on the TTO's own grid (2 mm), and on a 4 mm work grid (what a 1 mm CTA gets)
+        correct = mirror_test(renderer, prep.views, tournaments["correct"], X, rig, factors=factors)
+        assert correct.margin > MIRROR_LOSS_MARGIN and not correct.mirrored, (factors, correct.as_dict())
+        flipped = mirror_test(swapped, prep.views, tournaments["swapped"], X, rig, factors=factors)
+        assert flipped.mirrored and flipped.margin < -MIRROR_LOSS_MARGIN, (factors, flipped.as_dict())
+        if factors is None:  # on the TTO's grid the result's loss is the tournament's own
+            assert correct.loss == tournaments["correct"].objectives["estimate"]

@@ -123,7 +123,7 @@ def register_case(
     mirror = None
     if vessel_evidence and tournament is not None:
         with clock("mirror", engine):
-            mirror = mirror_test(renderer, case.views, tournament.objectives[tournament.chosen], X_learned, rig,
+            mirror = mirror_test(renderer, case.views, tournament, X_learned, rig,
                                  options.objective, engine.device, monitor)
     registration = Registration(
         "biplane-rigid", rig, patient_pose=kept.patient_pose, starts=dict(starts.objectives), chosen_start=kept.start,

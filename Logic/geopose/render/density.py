@@ -53,11 +53,13 @@ class DensityScale:
 
     def apply(self, hu: np.ndarray) -> np.ndarray:
         """Density (float32, [0, 1] over the volume the scale came from) of HU values."""
-        x = np.asarray(hu, dtype=np.float32)
-        x = np.where(x <= C.HU_AIR_MAX, np.float32(self.floor_hu), x)
+        x = np.array(hu, dtype=np.float32)  # a copy: the steps below work in place
+        np.copyto(x, np.float32(self.floor_hu), where=x <= C.HU_AIR_MAX)
         if self.bone_factor != 1.0:
-            x = np.where(x > C.HU_BONE_MIN, x * np.float32(self.bone_factor), x)
-        return (x - np.float32(self.lo_hu)) / np.float32(self.span_hu)
+            np.multiply(x, np.float32(self.bone_factor), out=x, where=x > C.HU_BONE_MIN)
+        x -= np.float32(self.lo_hu)
+        x /= np.float32(self.span_hu)
+        return x
 
 
 def hu_to_density(hu: Array, bone_factor: float = C.BONE_FACTOR) -> Array:

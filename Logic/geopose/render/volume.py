@@ -25,7 +25,7 @@ from ..images import block_mean
 from ..volume import Volume
 from .density import DensityScale
 
-__all__ = ["CHANNELS", "Level", "MaskSource", "RenderVolume", "footprint_mm"]
+__all__ = ["CHANNELS", "Level", "MaskSource", "RenderVolume", "coarse_mask", "footprint_mm"]
 
 #: Channel names, in order: the total density, then the density inside each mask.
 CHANNELS = ("total", "cranium", "vessels")
@@ -81,12 +81,13 @@ class RenderVolume:
 
     ``masks`` maps channel names (``cranium``, ``vessels``) to a :data:`MaskSource` on the
     CTA grid; a channel without a mask is all zeros. ``finest_spacing_mm`` bounds the
-    voxel size of the finest level from below (the CTA's own when None). The CTA array is
-    read, never changed.
+    voxel size of the finest level from below (the CTA's own when None); ``scale``: the HU -> density
+    map (default: the CTA's own, :class:`DensityScale`). The CTA array is read, never changed.
     """
 
     def __init__(
-        self, cta: Volume, masks: Mapping[str, MaskSource] | None = None, *, finest_spacing_mm: float | None = None
+        self, cta: Volume, masks: Mapping[str, MaskSource] | None = None, *, finest_spacing_mm: float | None = None,
+        scale: DensityScale | None = None,
     ) -> None:
         unknown = set(masks or {}) - set(CHANNELS[1:])
         if unknown:
@@ -96,7 +97,7 @@ class RenderVolume:
         self._masks: dict[str, np.ndarray] = {}
         self.finest_spacing_mm = finest_spacing_mm
         self._levels: dict[tuple[int, int, int], Level] = {}
-        self._scale: DensityScale | None = None
+        self._scale = scale
 
     @property
     def channel_names(self) -> tuple[str, ...]:
@@ -199,6 +200,27 @@ class RenderVolume:
         scale[:3, 3] = (np.asarray([fi, fj, fk], dtype=np.float64) - 1.0) / 2.0 + np.asarray([fi, fj, fk]) * lo[::-1]
         return Level(density, self.cta.ijk_to_centred @ scale, (fi, fj, fk), tuple(int(v) for v in lo))
 
+    def coarsened(self, factors: tuple[int, int, int]) -> tuple["RenderVolume", np.ndarray]:
+        """This CTA and its masks on the block grid of ``factors`` (i, j, k): HU block means under this CTA's density
+        scale, a mask keeping the blocks it fills at least half (no copy of the full grid is made); and the ``(4, 4)``
+        shift (mm) from this
+        CTA's centred frame to the block grid's (a pose ``T`` here is ``shift @ T`` there). Itself and the
+        identity for factors of 1."""
+        factors = tuple(int(f) for f in factors)
+        if factors == (1, 1, 1):
+            return self, np.eye(4)
+        fi, fj, fk = factors
+        scale = np.diag([fi, fj, fk, 1.0])
+        scale[:3, 3] = (np.asarray(factors, dtype=np.float64) - 1.0) / 2.0  # block centres, in full-grid indices
+        cta = Volume(_block_means(self.cta.array, factors), self.cta.ijk_to_ras @ scale, dict(self.cta.metadata))
+        masks = {name: cta.like(coarse_mask(mask, factors).astype(np.uint8))
+                 for name in CHANNELS[1:] if (mask := self.mask(name)) is not None}
+        shift = np.eye(4)
+        shift[:3, 3] = self.cta.centre_ras - cta.centre_ras
+        if self._scale is None:
+            self._scale = DensityScale.of(self.cta.array)
+        return RenderVolume(cta, masks, scale=self._scale), shift
+
     def with_vessels(self, keep: np.ndarray) -> "RenderVolume":
         """The same CTA whose vessel channel holds only the voxels ``keep`` (``[k, j, i]`` bool on the
         CTA grid, a subset of the vessel mask): e.g. the opacified ones (``register/opacified.py``).
@@ -229,3 +251,15 @@ class RenderVolume:
             out._levels[factors] = replace(level, density=density)
         return out
 
+
+def coarse_mask(mask: np.ndarray, factors: tuple[int, int, int]) -> np.ndarray:
+    """The blocks of ``factors`` (i, j, k) a ``[k, j, i]`` bool mask fills at least half (the grid of
+    :meth:`RenderVolume.coarsened`)."""
+    return _block_means(mask, factors) >= 0.5
+
+
+def _block_means(array: np.ndarray, factors: tuple[int, int, int]) -> np.ndarray:
+    """:func:`block_mean` of a ``[k, j, i]`` array by ``factors`` (i, j, k), slab by slab (float32)."""
+    fi, fj, fk = factors
+    step = SLAB_SLICES * fk
+    return np.concatenate([block_mean(array[k0:k0 + step], (fk, fj, fi)) for k0 in range(0, array.shape[0], step)])
