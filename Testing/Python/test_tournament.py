@@ -69,3 +69,32 @@ def test_the_opacified_vessels_are_read_at_the_networks_estimate_before_any_step
     alone = optimise_from_starts(renderer, views, {"DICOM angles": off}, rig, schedule, keep=("DICOM angles",),
                                  read_at=("estimate", X))
     assert alone["DICOM angles"].vessel_selection.iteration == schedule.coarse_steps()
+
+
+def test_a_finalist_far_behind_after_the_coarse_steps_stops_there(unilateral_case):
+    """The DICOM angles' run 20 mm off the networks' estimate (at the truth) is, after the coarse steps and judged by
+    the objective the finalists are judged by, more than ``stop_behind`` behind: it stops there with its gap
+    recorded and the estimate's run goes on to the end; with ``stop_behind`` 0 both run to the end."""
+    from register_helpers import _prepared
+
+    from geopose.geometry import invert
+    from geopose.register import TTOSchedule
+    from geopose.register.biplane import nominal_poses
+    from geopose.register.tournament import optimise_from_starts
+    from geopose.register.tto import tto_views
+
+    truth, runs, prep, renderer = _prepared(unilateral_case)
+    rig = nominal_poses(runs)
+    X = truth.poses["pa"] @ invert(rig["pa"])
+    off = X.copy()
+    off[:3, 3] += [12.0, 0.0, 16.0]
+    views = tto_views(prep.views, truth.poses)
+    starts = {"estimate": X, "DICOM angles": off}
+    schedule = TTOSchedule(iterations=5)
+    out = optimise_from_starts(renderer, views, starts, rig, schedule, keep=("DICOM angles",), read_at=("estimate", X))
+    dicom, estimate = out["DICOM angles"], out["estimate"]
+    assert dicom.stopped_at == schedule.coarse_steps() + 1 and dicom.behind > schedule.stop_behind
+    assert estimate.stopped_at is None and estimate.behind is None and len(estimate.trace) == schedule.iterations + 1
+    both = optimise_from_starts(renderer, views, starts, rig, TTOSchedule(iterations=5, stop_behind=0.0), keep=("DICOM angles",),
+                                read_at=("estimate", X))
+    assert all(r.stopped_at is None and len(r.trace) == 6 for r in both.values())

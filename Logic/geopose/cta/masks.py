@@ -86,8 +86,10 @@ def _fill_slicewise(mask: np.ndarray, axis: int) -> np.ndarray:
     background = np.zeros((2 * n - 1, h, w), dtype=np.uint8)
     background[::2] = ~slices
     labels = sitk.GetArrayFromImage(sitk.ConnectedComponent(sitk.GetImageFromArray(background), False))[::2]
-    border = np.unique(np.concatenate([labels[:, 0].ravel(), labels[:, -1].ravel(), labels[:, :, 0].ravel(), labels[:, :, -1].ravel()]))
-    holes = (labels > 0) & ~np.isin(labels, border)
+    hole = np.ones(int(labels.max()) + 1, dtype=bool)  # per label: a hole (not background, not at a border)
+    hole[0] = False
+    hole[np.concatenate([labels[:, 0].ravel(), labels[:, -1].ravel(), labels[:, :, 0].ravel(), labels[:, :, -1].ravel()])] = False
+    holes = hole[labels]
     return np.moveaxis(slices | holes, 0, axis).astype(mask.dtype)
 
 

@@ -19,6 +19,8 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 12: ``registration.tto_stopped_behind`` (a finalist of the TTO's tournament stopped after the coarse steps: how
+#: far it was behind the leader there, by one objective).
 #: 11: ``work``: per stage the renders, rays and ray points (samples x channels) both kernels did, and the
 #: stage's ns per point (``render/work.py``): what a stage's time is made of.
 #: 10: ``options`` is the options tree (``options.py``): the engine's settings at the top, each stage's in its
@@ -47,7 +49,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 11
+SCHEMA_VERSION = 12
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -207,12 +209,14 @@ def build_record(
             "DICOM angles (nominal_pose_centred); independent views: each view on its own (the published pipeline)",
             "tto_start": case.registration.chosen_start,
             "tto_start_doc": "the start the result came from: every distinct start runs the TTO's coarse steps, the DICOM "
-            "angles' run and the best other by the full-size loss there run to the end, the lower objective wins, the "
-            "DICOM angles' within a tie of 1e-3 (without a TTO: the best start)",
+            "angles' run and the best other by the full-size loss there are the finalists, one judged there by one "
+            "objective more than options.tto.stop_behind behind the other stops (tto_stopped_behind), the others run to "
+            "the end, the lower objective wins, the DICOM angles' within a tie of 1e-3 (without a TTO: the best start)",
             "start_objective": case.registration.starts,
             "tto_objective": case.registration.tto_objective,
             "tto_ranking_loss": {k: r.ranking_loss for k, r in case.registration.tto_runs.items() if r.ranking_loss is not None},
             "tto_stopped_at": {k: r.stopped_at for k, r in case.registration.tto_runs.items() if r.stopped_at is not None},
+            "tto_stopped_behind": {k: r.behind for k, r in case.registration.tto_runs.items() if r.behind is not None},
             "tto_vessel_selection": _vessel_selection(case),
             "patient_pose_centred": None if case.registration.patient_pose is None else _m(case.registration.patient_pose),
             "nominal_pose_centred": {k: _m(A) for k, A in case.registration.rig.items()},

@@ -5,10 +5,12 @@ The DICOM angles' start and the best other distinct candidate starts by their ob
 are read at the networks' estimate before any step, and the runs that start near it compare those alone
 (``opacified.py``; read after the coarse steps at the pose of the start of lowest loss when too few pass
 there); the DICOM angles' run and the best other by the loss after the coarse steps
-(``options.TTOSchedule.finalists`` in all) run to the end. The finalists are compared by one
-objective (``objective.py``; the opacified vessels alone, when they were read): the lowest wins,
-the DICOM angles' within :data:`OBJECTIVE_TIE` of it, so the result is never worse, by the
-objective, than the acquisition's own geometry optimised alike.
+(``options.TTOSchedule.finalists`` in all) are the finalists. Judged there by one objective, a finalist
+more than ``TTOSchedule.stop_behind`` behind the leader stops (the gap moved by at most 0.1 in the
+remaining steps on validation phantoms); the others run to the end and are compared by that objective
+(``objective.py``; the opacified vessels alone, when they were read): the lowest wins, the DICOM
+angles' within :data:`OBJECTIVE_TIE` of it, so the result is never worse, by the objective, than the
+acquisition's own geometry optimised alike (or, stopped, than where it stood after the coarse steps).
 """
 
 from __future__ import annotations
@@ -60,8 +62,9 @@ def optimise_from_starts(
     ``(4, 4)``: the networks' estimate) before any step, else (None, too few vessels passed there, or no start lies
     near it) after the coarse steps at the pose of the start of lowest loss; every start runs through the coarse steps (to its first
     full-size evaluation, after the first common-axis search); then the starts named in ``keep`` and the best
-    others by the loss there (``schedule.finalists`` in all) run to the end. Returns every run by name; a run stopped
-    after the coarse steps has ``stopped_at`` set. ``views`` give the targets (their poses only choose
+    others by the loss there (``schedule.finalists`` in all) run to the end, but for those more than
+    ``schedule.stop_behind`` behind the best of them by one objective (:func:`_behind`). Returns every run by name; a
+    run stopped after the coarse steps has ``stopped_at`` set (and ``behind``, when it was a finalist). ``views`` give the targets (their poses only choose
     the CTA level and whether a view has a vessel term)."""
     monitor = monitor or Monitor()
     names = list(starts)
@@ -74,6 +77,7 @@ def optimise_from_starts(
     read = bool(objective.read_opacified and read_at) and restrict_to_opacified(runs, starts, read_at, rig, 0)
     n_final = max(schedule.finalists, len(keep))
     ranking: dict[str, float] = {}
+    behind: dict[str, float] = {}
     finalists, offset, parts = names, 0, len(names)
     if first.coarse > 0:  # every start through its first full-size evaluation (after the coarse steps and the first search)
         offset = len(names)
@@ -89,12 +93,26 @@ def optimise_from_starts(
             leader = min(there, key=there.get)
             restrict_to_opacified({k: runs[k] for k in finalists}, {k: runs[k].patient_at(first.coarse) for k in finalists},
                                   (leader, runs[leader].patient_at(first.coarse)), rig, first.coarse)
+        behind = _behind(runs, finalists, images)
+        finalists = [k for k in finalists if behind[k] <= schedule.stop_behind or schedule.stop_behind <= 0]
     for j, name in enumerate(finalists):
         runs[name].advance(first.n + 1, monitor.part(offset + j, parts, f"from {name}"))
-    out = {name: run.finish(stopped_at=None if name in finalists else run.it, ranking_loss=ranking.get(name))
+    out = {name: run.finish(stopped_at=None if name in finalists else run.it, ranking_loss=ranking.get(name),
+                            behind=behind.get(name) if name not in finalists else None)
            for name, run in runs.items()}
     monitor.step("tto", 1.0, "done")
     return out
+
+
+def _behind(runs: Mapping[str, TTORun], finalists: Sequence[str], images: TTOImages) -> dict[str, float]:
+    """Per finalist, how far its best full-size pose so far lies behind the best of them, judged by one objective:
+    the images of the run that holds the opacified vessels (else ``images``), as the finalists are judged at the end."""
+    if len(finalists) < 2:
+        return {k: 0.0 for k in finalists}
+    judge = next((runs[k].images for k in finalists if runs[k].vessel_selection), images)
+    judged = {k: runs[k].best_loss_by(judge) for k in finalists}
+    lead = min(judged.values())
+    return {k: v - lead for k, v in judged.items()}
 
 
 @dataclass(frozen=True)

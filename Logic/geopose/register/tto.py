@@ -91,7 +91,9 @@ class TTOResult:
     ``stopped_at``: the iteration a start of :func:`.tournament.optimise_from_starts` stopped at when it
     was not among the finalists (None: it ran to the end); ``ranking_loss``: the full-size loss
     at the first full-size iteration it was ranked by there (None without a ranking);
-    ``vessel_selection``: the opacified vessels this run's vessel term kept from then on (None: all)."""
+    ``vessel_selection``: the opacified vessels this run's vessel term kept from then on (None: all);
+    ``behind``: for a finalist stopped after the coarse steps, how far its best full-size pose was behind the
+    leader's there, judged by one objective (``TTOSchedule.stop_behind``)."""
 
     poses: dict[str, np.ndarray]
     best_mncc: dict[str, float]
@@ -102,6 +104,7 @@ class TTOResult:
     stopped_at: int | None = None
     ranking_loss: float | None = None
     vessel_selection: VesselSelection | None = None
+    behind: float | None = None
 
 
 def biplanar_penalty(R_pa, R_lat):
@@ -354,6 +357,15 @@ class TTORun:
                                               "full") for k in self.names}
                 self._consider("patient", sum(float(v[0]) for v in losses.values()) + prior,
                                {k: float(v[1]) for k, v in losses.items()}, poses, it, prior)
+
+    def best_loss_by(self, images: TTOImages) -> float:
+        """The lowest objective (views summed, no prior) ``images`` give the full-size patient poses this run has
+        evaluated: its runs compared on one objective (:func:`.tournament.optimise_from_starts`)."""
+        import torch
+
+        with torch.no_grad():
+            return min(sum(float(images.loss(k, torch.as_tensor(poses[k], dtype=torch.float64, device=self.device)[None],
+                                             "full")[0]) for k in self.names) for poses, _, _ in self.seen)
 
     def _axis_search(self, it: int) -> None:
         """Move the patient along the common-axis valley (:func:`.axis_search.valley_turn`: the turn
