@@ -120,9 +120,9 @@ class SideSwappedInit(OracleInit):
 
 def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     """Init 20 deg / 60 mm off, reading the lateral on the wrong side: the DICOM-angle pose scores
-    best of the candidate starts, the TTO runs from it and from the one distinct learned start, the
-    result comes from the DICOM angles' run and is no worse than that start by the same objective,
-    and the lateral view carries the side doubt."""
+    best of the candidate starts, the TTO runs from it and from the one distinct learned start (which,
+    far behind after the coarse steps, stops there), the result comes from the DICOM angles' run and is
+    no worse than that start by the same objective, and the lateral view carries the side doubt."""
     case = phantom_case
     N, true, cta, runs = _read_phantom(case)
     far = {k: _perturb(true[k], (12.0, -10.0, 12.0), (40.0, -30.0, 30.0)) for k in true}
@@ -139,8 +139,11 @@ def test_a_bad_init_falls_back_to_the_dicom_angles_and_is_flagged(phantom_case):
     assert registration.starts["DICOM angles"] < min(v for k, v in registration.starts.items() if k != "DICOM angles")
     # Both views' Init imply one patient pose and Refine accepted nothing: one learned start, run once.
     assert len({round(v, 4) for k, v in registration.starts.items() if k != "DICOM angles"}) == 1
-    assert set(registration.tto_runs) == set(registration.tto_objective) == {"DICOM angles", "Init"}
-    assert all(run.stopped_at is None and len(run.trace) == 7 for run in registration.tto_runs.values())
+    # The learned start, far behind the DICOM angles' run after the coarse steps, stops there (tto.stop_behind).
+    assert set(registration.tto_runs) == {"DICOM angles", "Init"} and set(registration.tto_objective) == {"DICOM angles"}
+    learned, dicom = registration.tto_runs["Init"], registration.tto_runs["DICOM angles"]
+    assert learned.stopped_at == TTOSchedule(iterations=6).coarse_steps() + 1 and learned.behind > TTOSchedule().stop_behind
+    assert dicom.stopped_at is None and dicom.behind is None and len(dicom.trace) == 7
     assert registration.chosen_start == "DICOM angles" == min(registration.tto_objective, key=registration.tto_objective.get)
     assert result.tto is registration.tto_runs["DICOM angles"]
     # The finalists are compared by the objective of the opacified vessels read after the coarse steps.
@@ -183,8 +186,10 @@ def test_one_views_init_alone_is_a_start_when_the_other_view_is_far_off(phantom_
     # The similarity search moved the fused Init (Refine accepted nothing): a start of its own.
     assert set(ranking) == set(registration.tto_runs) == {"DICOM angles", "Init", "Init PA", "Init LAT", "Refine + search"}
     assert ranking["Init PA"] == min(v for k, v in ranking.items() if k != "DICOM angles")
-    assert record["tto_stopped_at"] == {"Init": 16, "Init LAT": 16, "Refine + search": 16}
-    assert set(registration.tto_objective) == {"DICOM angles", "Init PA"}
+    # The DICOM angles' run, a finalist far behind Init PA's after the coarse steps, stops there too.
+    assert record["tto_stopped_at"] == {"DICOM angles": 16, "Init": 16, "Init LAT": 16, "Refine + search": 16}
+    assert set(record["tto_stopped_behind"]) == {"DICOM angles"} and record["tto_stopped_behind"]["DICOM angles"] > 0.2
+    assert set(registration.tto_objective) == {"Init PA"}
     points = load_truth(case / "cta.nii.gz").carotid_points_mm
     for key in ("pa", "lat"):
         run = runs[key]

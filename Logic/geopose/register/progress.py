@@ -28,13 +28,13 @@ class Monitor:
         if self.progress is not None:
             self.progress(stage, min(max(fraction, 0.0), 1.0), message)
 
-    def part(self, index: int, count: int, label: str) -> "Monitor":
-        """The monitor of part ``index`` of ``count`` equal parts of a stage: fractions mapped into
-        that part's share, messages prefixed with ``label``; the same cancel hook."""
+    def part(self, index: float, count: int, label: str, width: float = 1.0) -> "Monitor":
+        """The monitor of part ``index`` of ``count`` equal parts of a stage (``width`` parts wide): fractions mapped
+        into that share, messages prefixed with ``label``; the same cancel hook."""
         if self.progress is None:
             return Monitor(None, self.cancel)
         outer = self.progress
-        return Monitor(lambda stage, f, m: outer(stage, (index + min(max(f, 0.0), 1.0)) / count, f"{label}: {m}"),
+        return Monitor(lambda stage, f, m: outer(stage, (index + width * min(max(f, 0.0), 1.0)) / count, f"{label}: {m}"),
                        self.cancel)
 
 

@@ -95,8 +95,9 @@ def optimise_from_starts(
                                   (leader, runs[leader].patient_at(first.coarse)), rig, first.coarse)
         behind = _behind(runs, finalists, images)
         finalists = [k for k in finalists if behind[k] <= schedule.stop_behind or schedule.stop_behind <= 0]
+    width = (parts - offset) / max(len(finalists), 1)  # the finalists left share what all were given
     for j, name in enumerate(finalists):
-        runs[name].advance(first.n + 1, monitor.part(offset + j, parts, f"from {name}"))
+        runs[name].advance(first.n + 1, monitor.part(offset + j * width, parts, f"from {name}", width))
     out = {name: run.finish(stopped_at=None if name in finalists else run.it, ranking_loss=ranking.get(name),
                             behind=behind.get(name) if name not in finalists else None)
            for name, run in runs.items()}
