@@ -130,10 +130,25 @@ def run(args: argparse.Namespace) -> int:
         f"{' --dense ' + ' '.join(args.dense) + f' --dense-subjects {args.dense_subjects}' if args.dense else ''}`"
     )
     (out / "bench.md").write_text(markdown(summary, header, real, n, dense))
-    (out / "bench.json").write_text(json.dumps({"summary": summary, "cases": cases, "real_heads": real, "dense": dense},
-                                               indent=1))
+    (out / "bench.json").write_text(json.dumps(_rounded({"summary": summary, "cases": cases, "real_heads": real,
+                                                         "dense": dense}), separators=(",", ":")))
     curve_rows = [r for r in row_names(settings) if r in (LEARNED_ROW.format(n=n), NATIVE_TTO_ROW.format(n=n), DRIFT_ROW.format(n=n))
                   or r.startswith("DICOM angles + ") and r != NATIVE_TTO_ROW.format(n=n)]
     convergence_figure(cases, curve_rows, out / "tto_convergence.png")
     print((out / "bench.md").read_text())
     return 0
+
+
+#: Significant digits of the numbers in ``bench.json`` (the committed file stays small in git's history).
+JSON_DIGITS = 5
+
+
+def _rounded(value):
+    """``value`` with every float rounded to :data:`JSON_DIGITS` significant digits."""
+    if isinstance(value, float):
+        return float(f"{value:.{JSON_DIGITS}g}")
+    if isinstance(value, dict):
+        return {k: _rounded(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_rounded(v) for v in value]
+    return value

@@ -36,8 +36,10 @@ from .tournament import Tournament
 
 __all__ = ["MIRROR_TTO_ITERATIONS", "MIRROR_LOSS_MARGIN", "MirrorTest", "mirrored_volume", "mirror_test", "work_factors"]
 
-#: TTO steps of the mirrored hypothesis, from the networks' estimate.
+#: TTO steps of the mirrored hypothesis, from the networks' estimate, and the share of them at half size (its start,
+#: common-axis searches and last pose are scored at full size).
 MIRROR_TTO_ITERATIONS: Final = 12
+MIRROR_COARSE_FRACTION: Final = 1.0
 #: The mirrored hypothesis must explain the runs better than the result by more than this (objective, both views
 #: summed) to fail it. Set on validation phantoms, default path (masks computed from the CTA): the 10 CTAs of
 #: 6010-6019 mirrored scored -0.11..-0.27, but for 6010-6012 (-0.029..+0.033), whose two sides fit the runs alike;
@@ -100,7 +102,8 @@ def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], tournament
     plane = midsagittal_plane(work.cta)
     mirrored = mirrored_volume(work, plane)
     result = test_time_optimise(TorchRenderer(mirrored, device), tto_views(views, view_poses(shift @ estimate, rig)),
-                                TTOSchedule(MIRROR_TTO_ITERATIONS), objective=objective, rig=rig)
+                                TTOSchedule(MIRROR_TTO_ITERATIONS, coarse_fraction=MIRROR_COARSE_FRACTION), objective=objective,
+                                rig=rig)
     judge = selection_judge(make_renderer(mirrored, renderer.engine, device), result.vessel_selection)
     return MirrorTest(loss, pair_objective(judge, result.poses, views, objective), plane)
 
