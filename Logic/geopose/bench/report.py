@@ -310,7 +310,7 @@ def _mean_curve(cases: list[dict], row: str, key: str) -> tuple[np.ndarray, np.n
         per_case.append(np.mean([curves[v][key] for v in VIEWS], axis=0))
     if not per_case:
         return None
-    arr = np.asarray(per_case)
+    arr = np.asarray([c[:min(len(c) for c in per_case)] for c in per_case])  # the iterations every case reached
     return arr.mean(0), arr.std(0, ddof=1) / np.sqrt(len(arr)) if len(arr) > 1 else np.zeros(arr.shape[1])
 
 

@@ -54,7 +54,8 @@ class VesselSelection:
     """The vessel voxels kept (``keep``, ``[k, j, i]`` bool on the CTA grid), out of ``vessel_voxels``;
     where it was read (``start`` name, TTO ``iteration``, the patient pose ``(4, 4)``); ``applied``:
     False when too few passed (``OPACIFIED_MIN_FRACTION``) and all vessels stay in the objective;
-    ``volume``: the CTA's render volume whose vessel channel holds the kept voxels alone (when applied)."""
+    ``volume``: the CTA's render volume whose vessel channel holds the kept voxels alone (when applied);
+    ``kept_kji``: the kept voxels' ``[k, j, i]`` indices ``(N, 3)``."""
 
     keep: np.ndarray
     vessel_voxels: int
@@ -64,6 +65,7 @@ class VesselSelection:
     iteration: int
     patient_pose: np.ndarray
     volume: RenderVolume | None = None
+    kept_kji: np.ndarray | None = None
 
     @property
     def kept_fraction(self) -> float:
@@ -80,7 +82,7 @@ class VesselSelection:
 def vessel_shift_mm(volume: RenderVolume, selection: VesselSelection, patient: np.ndarray) -> float:
     """Mean distance (mm) the kept vessels lie, in the isocentre frame, at patient pose ``patient`` from
     where they lay at the pose the selection was read at."""
-    points = volume.cta.centred_points(np.argwhere(selection.keep))
+    points = volume.cta.centred_points(selection.kept_kji if selection.kept_kji is not None else np.argwhere(selection.keep))
     if not len(points):
         return 0.0
     moved = np.linalg.solve(np.asarray(patient, dtype=np.float64), np.c_[points, np.ones(len(points))].T)
@@ -104,7 +106,7 @@ def read_opacified(
     images = [(name, np.asarray(image, dtype=np.float64), det) for name, image, det in views if np.max(image) > 0]
     if vessels is None or not vessels.any() or not images:
         return None
-    kji = np.argwhere(vessels)
+    kji = volume.mask_voxels("vessels")
     points_mm = volume.cta.centred_points(kji)
     shown = np.full(len(kji), np.inf)
     for name, image, det in images:
@@ -114,10 +116,11 @@ def read_opacified(
         shown = np.minimum(shown, bilinear_sample(smooth, pixels[:, 0], pixels[:, 1]))
     passed = shown >= OPACIFIED_THRESHOLD
     applied = passed.mean() >= OPACIFIED_MIN_FRACTION
+    kept = kji[passed] if applied else kji
     keep = np.zeros(vessels.shape, dtype=bool)
-    keep[tuple(kji[passed if applied else slice(None)].T)] = True
+    keep[tuple(kept.T)] = True
     return VesselSelection(keep, len(kji), int(passed.sum()) if applied else len(kji), bool(applied), start, iteration,
-                           np.asarray(patient, dtype=np.float64), volume.with_vessels(keep) if applied else None)
+                           np.asarray(patient, dtype=np.float64), volume.with_vessels(keep) if applied else None, kept)
 
 
 def selection_judge(renderer: Renderer, selection: VesselSelection | None) -> Renderer:

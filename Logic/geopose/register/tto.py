@@ -166,10 +166,9 @@ class TTOImages:
         still (:func:`.axis_search.valley_turn`)."""
         if self._valley_points is None:
             volume = self.renderer.volume
-            mask = volume.mask("vessels")
-            if mask is None or not mask.any():
-                mask = volume.mask("cranium")
-            kji = np.argwhere(mask) if mask is not None else np.zeros((0, 3), dtype=int)
+            kji = volume.mask_voxels("vessels")
+            if not len(kji):
+                kji = volume.mask_voxels("cranium")
             self._valley_points = volume.cta.centred_points(kji[:: max(1, -(-len(kji) // VALLEY_POINTS))])
         return self._valley_points
 

@@ -95,6 +95,7 @@ class RenderVolume:
         self.cta = cta
         self._mask_sources = dict(masks or {})
         self._masks: dict[str, np.ndarray] = {}
+        self._voxels: dict[str, np.ndarray] = {}
         self.finest_spacing_mm = finest_spacing_mm
         self._levels: dict[tuple[int, int, int], Level] = {}
         self._scale = scale
@@ -114,6 +115,13 @@ class RenderVolume:
                 raise ValueError(f"the {name} mask grid {vol.shape_ijk} differs from the CTA grid {self.cta.shape_ijk}")
             self._masks[name] = np.asarray(vol.array) > 0
         return self._masks[name]
+
+    def mask_voxels(self, name: str) -> np.ndarray:
+        """The ``[k, j, i]`` indices ``(N, 3)`` of channel ``name``'s mask voxels (none without a mask), found once."""
+        if name not in self._voxels:
+            mask = self.mask(name)
+            self._voxels[name] = np.argwhere(mask) if mask is not None else np.zeros((0, 3), dtype=np.intp)
+        return self._voxels[name]
 
     # ----------------------------------------------------------------- density
 
@@ -236,7 +244,7 @@ class RenderVolume:
         out._masks["vessels"] = keep
         if out._scale is None:
             out._scale = self._scale = DensityScale.of(self.cta.array)
-        kji = np.argwhere(keep)
+        kji = out._voxels["vessels"] = np.argwhere(keep)
         values = out._scale.apply(self.cta.array[tuple(kji.T)])
         for factors, level in self._levels.items():
             if not level.masked:  # built for the total channel alone: the new volume builds its own when needed
