@@ -173,7 +173,7 @@ class TTOSchedule(_Group):
                           "their objective", bounds=(1, 100))
     finalists: int = setting(2, "starts that run on after the coarse steps", bounds=(1, 100))
     #: On validation phantoms 6010-6029 (2 mm, default path) the gap between the two finalists after the coarse steps,
-    #: judged by one objective, moved by at most 0.1 over the remaining steps (final gaps 0.1-0.92, one pair converged
+    #: judged by one objective, closed by at most 0.1 over the remaining steps (final gaps 0.1-0.92, one pair converged
     #: together); a finalist 0.2 behind never came back (experiments/tto_schedule/tournament_stop.md).
     stop_behind: float = setting(0.2, "a finalist whose best pose after the coarse steps is behind the leader's by more "
                                  "than this (objective, both views summed) stops there; 0 never stops one",

@@ -6,7 +6,7 @@ are read at the networks' estimate before any step, and the runs that start near
 (``opacified.py``; read after the coarse steps at the pose of the start of lowest loss when too few pass
 there); the DICOM angles' run and the best other by the loss after the coarse steps
 (``options.TTOSchedule.finalists`` in all) are the finalists. Judged there by one objective, a finalist
-more than ``TTOSchedule.stop_behind`` behind the leader stops (the gap moved by at most 0.1 in the
+more than ``TTOSchedule.stop_behind`` behind the leader stops (a gap closed by at most 0.1 in the
 remaining steps on validation phantoms); the others run to the end and are compared by that objective
 (``objective.py``; the opacified vessels alone, when they were read): the lowest wins, the DICOM
 angles' within :data:`OBJECTIVE_TIE` of it, so the result is never worse, by the objective, than the
