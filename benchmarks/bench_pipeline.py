@@ -115,7 +115,7 @@ def _table(rows: dict[str, dict]) -> str:
     lines = [head, "|" + "---|" * (len(STAGES) + 3)]
     for name, r in rows.items():
         instant = r["calibration"] + r["init"] + r["refine"] + r.get("search", 0.0)
-        cells = [f"{r.get(s, float('nan')):.2f}" for s in STAGES]
+        cells = [f"{r[s]:.2f}" if s in r else "-" for s in STAGES]  # a stage that did not run: -
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {instant:.2f} | {r['peak_rss_gb']:.2f} |")
     return "\n".join(lines)
 
