@@ -343,28 +343,29 @@ class TTORun:
         name = next(iter(seen))
         return patient_pose(np.asarray(seen[name]["pose"]), self.rig[name])
 
+    def _seen_losses(self, images: TTOImages):
+        """Per full-size patient pose seen so far: (poses, iteration, prior, per view ``images.loss`` terms as floats)."""
+        import torch
+
+        with torch.no_grad():
+            for poses, it, prior in self.seen:
+                yield poses, it, prior, {k: [float(v) for v in images.loss(
+                    k, torch.as_tensor(poses[k], dtype=torch.float64, device=self.device)[None], "full")[:2]]
+                    for k in self.names}
+
     def rescore_best(self) -> None:
         """Score the full-size patient poses seen so far again with the objective the images hold now
         (their vessel channel changed) and keep the best, so that later iterations are compared with
         them on equal terms."""
-        import torch
-
         self.best.pop("patient", None)
-        with torch.no_grad():
-            for poses, it, prior in self.seen:
-                losses = {k: self.images.loss(k, torch.as_tensor(poses[k], dtype=torch.float64, device=self.device)[None],
-                                              "full") for k in self.names}
-                self._consider("patient", sum(float(v[0]) for v in losses.values()) + prior,
-                               {k: float(v[1]) for k, v in losses.items()}, poses, it, prior)
+        for poses, it, prior, losses in self._seen_losses(self.images):
+            self._consider("patient", sum(v[0] for v in losses.values()) + prior, {k: v[1] for k, v in losses.items()},
+                           poses, it, prior)
 
     def best_loss_by(self, images: TTOImages) -> float:
         """The lowest objective (views summed, no prior) ``images`` give the full-size patient poses this run has
         evaluated: its runs compared on one objective (:func:`.tournament.optimise_from_starts`)."""
-        import torch
-
-        with torch.no_grad():
-            return min(sum(float(images.loss(k, torch.as_tensor(poses[k], dtype=torch.float64, device=self.device)[None],
-                                             "full")[0]) for k in self.names) for poses, _, _ in self.seen)
+        return min(sum(v[0] for v in losses.values()) for _, _, _, losses in self._seen_losses(images))
 
     def _axis_search(self, it: int) -> None:
         """Move the patient along the common-axis valley (:func:`.axis_search.valley_turn`: the turn

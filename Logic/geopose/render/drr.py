@@ -165,8 +165,8 @@ class DRR(nn.Module):
         k = torch.addcmul(start[:, 2:3], span[:, 2:3], frac)
         k0 = torch.floor(k.detach())
         # Atlas row of (j, tile k0 + 1), normalised: (j + (k0 + 1)(J + 1)) * sy - 1.
-        y = torch.addcmul(((start[:, 1] + (J + 1)) * sy - 1.0)[:, None], (span[:, 1] * sy)[:, None], frac)
-        y = y.add_(k0, alpha=(J + 1) * sy) if not y.requires_grad else y.add(k0, alpha=(J + 1) * sy)
+        y = torch.addcmul(((start[:, 1] + (J + 1)) * sy - 1.0)[:, None], (span[:, 1] * sy)[:, None], frac).add_(
+            k0, alpha=(J + 1) * sy)
         m = (N + pad) // split
         grid = torch.stack((x, y), dim=-1).view(split, m, n, 2)
         pair = F.grid_sample(self.atlas(channels).expand(split, -1, -1, -1), grid, mode="bilinear",

@@ -125,11 +125,16 @@ class RenderVolume:
 
     # ----------------------------------------------------------------- density
 
-    def density_slab(self, k0: int, k1: int) -> np.ndarray:
-        """Total density of CTA slices ``k0:k1`` (``[k, j, i]`` float32 in [0, 1]; scale of the whole CTA)."""
+    @property
+    def scale(self) -> DensityScale:
+        """The HU -> density map (given, or the whole CTA's own, found on first use)."""
         if self._scale is None:
             self._scale = DensityScale.of(self.cta.array)
-        return self._scale.apply(self.cta.array[k0:k1])
+        return self._scale
+
+    def density_slab(self, k0: int, k1: int) -> np.ndarray:
+        """Total density of CTA slices ``k0:k1`` (``[k, j, i]`` float32 in [0, 1]; scale of the whole CTA)."""
+        return self.scale.apply(self.cta.array[k0:k1])
 
     # ------------------------------------------------------------------ levels
 
@@ -225,9 +230,7 @@ class RenderVolume:
                  for name in CHANNELS[1:] if (mask := self.mask(name)) is not None}
         shift = np.eye(4)
         shift[:3, 3] = self.cta.centre_ras - cta.centre_ras
-        if self._scale is None:
-            self._scale = DensityScale.of(self.cta.array)
-        return RenderVolume(cta, masks, scale=self._scale), shift
+        return RenderVolume(cta, masks, scale=self.scale), shift
 
     def with_vessels(self, keep: np.ndarray) -> "RenderVolume":
         """The same CTA whose vessel channel holds only the voxels ``keep`` (``[k, j, i]`` bool on the
@@ -240,10 +243,8 @@ class RenderVolume:
         vessels = self.mask("vessels")
         keep = keep & vessels if vessels is not None else np.zeros_like(keep)
         out = RenderVolume(self.cta, finest_spacing_mm=self.finest_spacing_mm)
-        out._mask_sources, out._masks, out._scale = dict(self._mask_sources), dict(self._masks), self._scale
+        out._mask_sources, out._masks, out._scale = dict(self._mask_sources), dict(self._masks), self.scale
         out._masks["vessels"] = keep
-        if out._scale is None:
-            out._scale = self._scale = DensityScale.of(self.cta.array)
         kji = out._voxels["vessels"] = np.argwhere(keep)
         values = out._scale.apply(self.cta.array[tuple(kji.T)])
         for factors, level in self._levels.items():
