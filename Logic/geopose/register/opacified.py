@@ -54,8 +54,8 @@ class VesselSelection:
     """The vessel voxels kept (``keep``, ``[k, j, i]`` bool on the CTA grid), out of ``vessel_voxels``;
     where it was read (``start`` name, TTO ``iteration``, the patient pose ``(4, 4)``); ``applied``:
     False when too few passed (``OPACIFIED_MIN_FRACTION``) and all vessels stay in the objective;
-    ``volume``: the CTA's render volume whose vessel channel holds the kept voxels alone (when applied);
-    ``kept_kji``: the kept voxels' ``[k, j, i]`` indices ``(N, 3)``."""
+    ``kept_kji``: the kept voxels' ``[k, j, i]`` indices ``(N, 3)``; ``volume``: the CTA's render volume whose vessel
+    channel holds the kept voxels alone (when applied)."""
 
     keep: np.ndarray
     vessel_voxels: int
@@ -64,8 +64,8 @@ class VesselSelection:
     start: str
     iteration: int
     patient_pose: np.ndarray
+    kept_kji: np.ndarray
     volume: RenderVolume | None = None
-    kept_kji: np.ndarray | None = None
 
     @property
     def kept_fraction(self) -> float:
@@ -82,7 +82,7 @@ class VesselSelection:
 def vessel_shift_mm(volume: RenderVolume, selection: VesselSelection, patient: np.ndarray) -> float:
     """Mean distance (mm) the kept vessels lie, in the isocentre frame, at patient pose ``patient`` from
     where they lay at the pose the selection was read at."""
-    points = volume.cta.centred_points(selection.kept_kji if selection.kept_kji is not None else np.argwhere(selection.keep))
+    points = volume.cta.centred_points(selection.kept_kji)
     if not len(points):
         return 0.0
     moved = np.linalg.solve(np.asarray(patient, dtype=np.float64), np.c_[points, np.ones(len(points))].T)
@@ -120,7 +120,7 @@ def read_opacified(
     keep = np.zeros(vessels.shape, dtype=bool)
     keep[tuple(kept.T)] = True
     return VesselSelection(keep, len(kji), int(passed.sum()) if applied else len(kji), bool(applied), start, iteration,
-                           np.asarray(patient, dtype=np.float64), volume.with_vessels(keep) if applied else None, kept)
+                           np.asarray(patient, dtype=np.float64), kept, volume.with_vessels(keep) if applied else None)
 
 
 def selection_judge(renderer: Renderer, selection: VesselSelection | None) -> Renderer:
