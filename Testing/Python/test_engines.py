@@ -364,7 +364,7 @@ def test_a_volume_with_a_vessel_subset_equals_one_built_with_it():
     factors = [(1, 1, 1), (2, 2, 2), (4, 2, 8)]
     for f in factors:
         volume.level(f)
-    subset = volume.with_vessels(keep | ~vessels)  # voxels outside the vessel mask are not vessels
+    subset = volume.with_vessels(np.argwhere(keep | ~vessels))  # voxels outside the vessel mask are not vessels
     reference = RenderVolume(cta, {"vessels": cta.like(keep.astype(np.uint8))})
     for f in factors:
         a, b = subset.level(f), reference.level(f)
@@ -373,5 +373,7 @@ def test_a_volume_with_a_vessel_subset_equals_one_built_with_it():
         assert a.density[2].sum() < volume.level(f).density[2].sum()
     np.testing.assert_array_equal(cta.array, hu)
     assert subset.mask("vessels").sum() == keep.sum()
-    with pytest.raises(ValueError, match="vessel subset"):
-        volume.with_vessels(keep[:-1])
+    with pytest.raises(ValueError, match="outside the CTA grid"):
+        volume.with_vessels(np.argwhere(keep) + [1, 0, 0])
+    with pytest.raises(ValueError, match="C order"):
+        volume.with_vessels(np.argwhere(keep)[::-1])

@@ -98,3 +98,35 @@ def test_the_body_erosion_is_itks_ball_erosion_voxel_for_voxel():
         got = _eroded_by_ball(sitk.GetArrayFromImage(blobs).astype(bool), radius)
         assert 0 < expected.sum() < expected.size
         assert np.array_equal(got, expected), (radius, int((got != expected).sum()))
+
+
+def test_the_working_grid_is_one_binshrink_of_the_whole_ct_made_slab_by_slab():
+    """The masks' working grid is shrunk slab by slab (no full-size copy of a 512^3 CTA); it must hold
+    exactly the voxels and geometry of one ``sitk.BinShrink`` of the whole image, when the factors do not
+    divide the grid too, and map a mask back onto the full grid by nearest neighbour (zero in the
+    partial blocks BinShrink drops)."""
+    import SimpleITK as sitk
+
+    from geopose.cta.io import sitk_from_volume
+    from geopose.cta.masks import WORK_SLAB_SLICES, _back_to_full, _work_image
+    from geopose.volume import Volume
+
+    rng = np.random.default_rng(5)
+    affine = np.array([[0.0, -0.45, 0.0, 12.0], [0.5, 0.0, 0.0, -40.0], [0.0, 0.0, 0.7, 3.0], [0.0, 0.0, 0.0, 1.0]])
+    for shape, factors, dtype in (((2 * WORK_SLAB_SLICES * 3 + 5, 23, 17), [2, 3, 3], np.float32),
+                                  ((70, 20, 26), [4, 2, 1], np.int16), ((9, 8, 8), [1, 1, 1], np.float32)):
+        volume = Volume(rng.normal(0.0, 600.0, shape).astype(dtype), affine)
+        expected = sitk.BinShrink(sitk_from_volume(volume), factors)
+        work = _work_image(volume, factors)
+        assert np.array_equal(sitk.GetArrayFromImage(work), sitk.GetArrayFromImage(expected)), (shape, factors)
+        assert work.GetSize() == expected.GetSize() and work.GetPixelID() == expected.GetPixelID()
+        for a, b in ((work.GetOrigin(), expected.GetOrigin()), (work.GetSpacing(), expected.GetSpacing()),
+                     (work.GetDirection(), expected.GetDirection())):
+            np.testing.assert_allclose(a, b, atol=1e-9)
+        mask = sitk.Cast(work > 0, sitk.sitkUInt8)
+        reference = sitk.GetArrayFromImage(sitk.Resample(mask, sitk_from_volume(volume), sitk.Transform(),
+                                                         sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8))
+        full = _back_to_full(mask, work, volume)
+        assert full.shape == volume.array.shape and np.array_equal(full, reference)
+        k, j, i = (n - n % f for n, f in zip(shape, factors[::-1]))
+        assert not full[k:].any() and not full[:, j:].any() and not full[:, :, i:].any()

@@ -30,6 +30,7 @@ __all__ = [
     "validate_cta",
     "volume_from_sitk",
     "sitk_from_volume",
+    "sitk_geometry",
     "file_sha256",
 ]
 
@@ -50,8 +51,9 @@ def volume_from_sitk(image: sitk.Image, metadata: dict | None = None) -> Volume:
     return Volume(array, RAS_TO_LPS @ ijk_to_lps, dict(metadata or {}))
 
 
-def sitk_from_volume(volume: Volume) -> sitk.Image:
-    """A :class:`Volume` -> SimpleITK image in LPS; the affine must be rotation x spacing."""
+def sitk_geometry(volume: Volume) -> dict:
+    """``volume``'s grid as SimpleITK states it (LPS): ``size``, ``outputSpacing``, ``outputDirection`` and
+    ``outputOrigin`` (the keywords of ``sitk.Resample``); the affine must be rotation x spacing."""
     ijk_to_lps = RAS_TO_LPS @ volume.ijk_to_ras
     lin = ijk_to_lps[:3, :3]
     spacing = np.linalg.norm(lin, axis=0)
@@ -63,13 +65,21 @@ def sitk_from_volume(volume: Volume) -> sitk.Image:
             "the volume affine is sheared (its axes are not orthogonal); NIfTI/NRRD/MHA via SimpleITK store "
             "only rotation x spacing: resample the volume onto an orthogonal grid first"
         )
+    return {"size": [int(n) for n in volume.shape_ijk], "outputSpacing": tuple(float(s) for s in spacing),
+            "outputDirection": tuple(float(v) for v in direction.ravel()),
+            "outputOrigin": tuple(float(v) for v in ijk_to_lps[:3, 3])}
+
+
+def sitk_from_volume(volume: Volume) -> sitk.Image:
+    """A :class:`Volume` -> SimpleITK image in LPS (:func:`sitk_geometry`)."""
+    geometry = sitk_geometry(volume)
     array = volume.array
     if array.dtype == bool:
         array = array.astype(np.uint8)
     image = sitk.GetImageFromArray(np.ascontiguousarray(array))
-    image.SetSpacing(tuple(float(s) for s in spacing))
-    image.SetDirection(tuple(float(v) for v in direction.ravel()))
-    image.SetOrigin(tuple(float(v) for v in ijk_to_lps[:3, 3]))
+    image.SetSpacing(geometry["outputSpacing"])
+    image.SetDirection(geometry["outputDirection"])
+    image.SetOrigin(geometry["outputOrigin"])
     return image
 
 

@@ -99,7 +99,7 @@ def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], tournament
     if work is not renderer.volume:  # the result judged again on the work grid, as its mirror image will be
         selection = tournament.vessel_selection
         judge = make_renderer(work if selection is None or not selection.applied else
-                              work.with_vessels(coarse_mask(selection.keep, factors)), renderer.engine, device)
+                              work.with_vessels(np.argwhere(coarse_mask(selection.keep, factors))), renderer.engine, device)
         loss = pair_objective(judge, {k: shift @ T for k, T in tournament.result.poses.items()}, views, objective)
     plane = midsagittal_plane(work.cta)
     mirrored = mirrored_volume(work, plane)

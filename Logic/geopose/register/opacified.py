@@ -51,7 +51,8 @@ OPACIFIED_NEAR_MM = 5.0
 
 @dataclass(frozen=True)
 class VesselSelection:
-    """The vessel voxels kept (``keep``, ``[k, j, i]`` bool on the CTA grid), out of ``vessel_voxels``;
+    """The vessel voxels kept (``keep``, ``[k, j, i]`` bool on the CTA grid: the vessel mask of ``volume``, or the
+    CTA's own when not applied; never a copy), out of ``vessel_voxels``;
     where it was read (``start`` name, TTO ``iteration``, the patient pose ``(4, 4)``); ``applied``:
     False when too few passed (``OPACIFIED_MIN_FRACTION``) and all vessels stay in the objective;
     ``kept_kji``: the kept voxels' ``[k, j, i]`` indices ``(N, 3)``; ``volume``: the CTA's render volume whose vessel
@@ -117,10 +118,10 @@ def read_opacified(
     passed = shown >= OPACIFIED_THRESHOLD
     applied = passed.mean() >= OPACIFIED_MIN_FRACTION
     kept = kji[passed] if applied else kji
-    keep = np.zeros(vessels.shape, dtype=bool)
-    keep[tuple(kept.T)] = True
+    subset = volume.with_vessels(kept) if applied else None
+    keep = subset.mask("vessels") if applied else vessels  # shared, not copied
     return VesselSelection(keep, len(kji), int(passed.sum()) if applied else len(kji), bool(applied), start, iteration,
-                           np.asarray(patient, dtype=np.float64), kept, volume.with_vessels(keep) if applied else None)
+                           np.asarray(patient, dtype=np.float64), kept, subset)
 
 
 def selection_judge(renderer: Renderer, selection: VesselSelection | None) -> Renderer:

@@ -232,20 +232,24 @@ class RenderVolume:
         shift[:3, 3] = self.cta.centre_ras - cta.centre_ras
         return RenderVolume(cta, masks, scale=self.scale), shift
 
-    def with_vessels(self, keep: np.ndarray) -> "RenderVolume":
-        """The same CTA whose vessel channel holds only the voxels ``keep`` (``[k, j, i]`` bool on the
-        CTA grid, a subset of the vessel mask): e.g. the opacified ones (``register/opacified.py``).
-        The levels built so far are carried over with only their vessel channel recomputed (from
-        the kept voxels alone); the CTA and the other masks are shared, never copied."""
-        keep = np.asarray(keep, dtype=bool)
-        if keep.shape != self.cta.array.shape:
-            raise ValueError(f"the vessel subset is {keep.shape}, the CTA grid {self.cta.array.shape}")
+    def with_vessels(self, kept_kji: np.ndarray) -> "RenderVolume":
+        """The same CTA whose vessel channel holds only the voxels ``kept_kji`` (``[k, j, i]`` indices ``(N, 3)``, unique
+        and in C order as ``np.argwhere`` lists them; those outside the vessel mask are dropped): e.g. the opacified ones
+        (``register/opacified.py``). The levels built so far are carried over with only their vessel channel
+        recomputed (from the kept voxels alone); the CTA and the other masks are shared, never copied."""
+        kji = np.asarray(kept_kji, dtype=np.intp).reshape(-1, 3)
+        if len(kji) and (kji.min() < 0 or np.any(kji.max(axis=0) >= self.cta.array.shape)):
+            raise ValueError(f"kept vessel voxels lie outside the CTA grid {self.cta.array.shape}")
+        if np.any(np.diff(np.ravel_multi_index(tuple(kji.T), self.cta.array.shape)) <= 0):
+            raise ValueError("kept vessel voxels must be unique and in C order (as np.argwhere lists them)")
         vessels = self.mask("vessels")
-        keep = keep & vessels if vessels is not None else np.zeros_like(keep)
+        kji = kji[vessels[tuple(kji.T)]] if vessels is not None else kji[:0]
+        keep = np.zeros(self.cta.array.shape, dtype=bool)
+        keep[tuple(kji.T)] = True
         out = RenderVolume(self.cta, finest_spacing_mm=self.finest_spacing_mm)
         out._mask_sources, out._masks, out._scale = dict(self._mask_sources), dict(self._masks), self.scale
         out._masks["vessels"] = keep
-        kji = out._voxels["vessels"] = np.argwhere(keep)
+        out._voxels["vessels"] = kji
         values = out._scale.apply(self.cta.array[tuple(kji.T)])
         for factors, level in self._levels.items():
             if not level.masked:  # built for the total channel alone: the new volume builds its own when needed
