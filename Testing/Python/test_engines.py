@@ -128,6 +128,36 @@ def test_a_coarsened_volume_is_the_cta_on_its_block_grid_in_a_shifted_frame():
     assert correlation[0] > 0.85 and correlation[1] > 0.93, correlation
 
 
+def test_a_ct_finer_than_the_render_grid_is_rendered_on_its_block_means_in_its_own_frame(tmp_path):
+    """A CTA finer than ``RENDER_GRID_MM`` is rendered from its block means (as ``sitk.BinShrink``: whole blocks,
+    an odd far edge dropped) in that CTA's own centred frame, with the density scale of its full grid; a given mask
+    keeps the blocks it fills at least half; the poses need no shift: a block voxel lies where the centre of the
+    voxels it averages lies; and a CTA no finer keeps its own grid."""
+    from geopose.register.case import prepare_case
+    from geopose.render.density import DensityScale
+    from geopose.render.volume import render_factors
+
+    cta, cranium, _ = _small_volume()
+    fine_affine = cta.ijk_to_ras @ np.diag([0.25, 0.25, 0.25, 1.0])  # 0.5-0.6 mm voxels
+    hu = np.repeat(np.repeat(np.repeat(cta.array, 4, 0), 4, 1), 4, 2)[:157, :143, :175]  # odd sizes
+    fine = Volume(hu + np.float32(1.0) * (np.arange(175) % 3), fine_affine)
+    mask = fine.like(np.repeat(np.repeat(np.repeat(cranium.array, 4, 0), 4, 1), 4, 2)[:157, :143, :175])
+    assert render_factors(fine.spacing_mm) == (2, 1, 1) and render_factors(cta.spacing_mm) == (1, 1, 1)
+    runs = phantom_case(6010, tmp_path / "runs", 4.0).runs
+    case = prepare_case(fine, runs, cranium_mask=mask)
+    grid = case.volume.cta
+    assert grid.array.shape == (157, 143, 87) and case.volume.scale == DensityScale.of(fine.array)
+    np.testing.assert_array_equal(grid.array, fine.shrunk((2, 1, 1)).array)
+    np.testing.assert_allclose(case.volume.centred_to_ras, fine.centred_to_ras)
+    blocks = np.array([[0, 0, 0], [40, 71, 86], [156, 142, 3]])
+    np.testing.assert_allclose(case.volume.centred_points(blocks),
+                               (fine.centred_points(blocks * [1, 1, 2]) + fine.centred_points(blocks * [1, 1, 2] + [0, 0, 1])) / 2,
+                               atol=1e-9)
+    held = (mask.array[:, :, 0:174:2].astype(int) + mask.array[:, :, 1:174:2]) / 2
+    np.testing.assert_array_equal(case.volume.mask("cranium"), held >= 0.5)
+    assert prepare_case(cta, runs).volume.cta is cta
+
+
 def test_numpy_and_torch_kernels_render_the_same():
     cta, cranium, vessels = _small_volume()
     volume = RenderVolume(cta, {"cranium": cranium, "vessels": vessels})

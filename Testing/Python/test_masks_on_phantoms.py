@@ -108,12 +108,12 @@ def test_the_working_grid_is_one_binshrink_of_the_whole_ct_made_slab_by_slab():
     import SimpleITK as sitk
 
     from geopose.cta.io import sitk_from_volume
-    from geopose.cta.masks import WORK_SLAB_SLICES, _back_to_full, _work_image
-    from geopose.volume import Volume
+    from geopose.cta.masks import _back_to_full, _work_image
+    from geopose.volume import SHRINK_SLAB_SLICES, Volume
 
     rng = np.random.default_rng(5)
     affine = np.array([[0.0, -0.45, 0.0, 12.0], [0.5, 0.0, 0.0, -40.0], [0.0, 0.0, 0.7, 3.0], [0.0, 0.0, 0.0, 1.0]])
-    for shape, factors, dtype in (((2 * WORK_SLAB_SLICES * 3 + 5, 23, 17), [2, 3, 3], np.float32),
+    for shape, factors, dtype in (((2 * SHRINK_SLAB_SLICES * 3 + 5, 23, 17), [2, 3, 3], np.float32),
                                   ((70, 20, 26), [4, 2, 1], np.int16), ((9, 8, 8), [1, 1, 1], np.float32)):
         volume = Volume(rng.normal(0.0, 600.0, shape).astype(dtype), affine)
         expected = sitk.BinShrink(sitk_from_volume(volume), factors)

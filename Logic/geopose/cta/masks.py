@@ -48,8 +48,6 @@ AIR_MARGIN_MM = 3.0
 #: The vessel mask is computed on a grid no finer than this (mm; HU block-averaged, the cranium
 #: mask by majority), then mapped back by nearest neighbour: at 0.5 mm it costs 8 s on 2 cores.
 VESSEL_WORK_SPACING_MM = 1.0
-#: Slices (of the working grid) shrunk at a time by :func:`_work_image`.
-WORK_SLAB_SLICES = 32
 #: Vessel components smaller than this (mm^3) are dropped as noise.
 MIN_VESSEL_COMPONENT_MM3 = 10.0
 
@@ -64,21 +62,9 @@ def _work_factors(volume: Volume, work_spacing_mm: float) -> list[int]:
 
 
 def _work_image(volume: Volume, factors: list[int], dtype: type | None = None) -> sitk.Image:
-    """``volume`` (as ``dtype`` when given) on its working grid: ``sitk.BinShrink`` by ``factors`` (i, j, k), run
-    slab by slab so that no full-size copy of the CTA is made (the voxels and geometry of one BinShrink of the whole
-    image: whole blocks, each voxel at its block's centre); the whole grid when every factor is 1."""
-    if max(factors) == 1:
-        return sitk_from_volume(volume.like(np.asarray(volume.array, dtype=dtype)) if dtype else volume)
-    fi, fj, fk = factors
-    whole = volume.array.shape[0] - volume.array.shape[0] % fk
-    step = WORK_SLAB_SLICES * fk
-    shrunk = np.concatenate([
-        sitk.GetArrayFromImage(sitk.BinShrink(sitk.GetImageFromArray(
-            np.ascontiguousarray(volume.array[k0:min(whole, k0 + step)], dtype=dtype)), factors))
-        for k0 in range(0, whole, step)])
-    centres = np.diag([fi, fj, fk, 1.0])
-    centres[:3, 3] = (np.asarray(factors, dtype=np.float64) - 1.0) / 2.0
-    return sitk_from_volume(Volume(shrunk, volume.ijk_to_ras @ centres))
+    """``volume`` (as ``dtype`` when given) on its working grid, as SimpleITK image: ``sitk.BinShrink`` by ``factors``
+    (i, j, k) without a full-size copy (:meth:`Volume.shrunk`); the whole grid when every factor is 1."""
+    return sitk_from_volume(volume.shrunk(factors, dtype))
 
 
 def _back_to_full(mask: sitk.Image, work: sitk.Image, volume: Volume) -> np.ndarray:

@@ -14,7 +14,8 @@ from ..cta import cranium_mask_from_cta, vessel_mask_from_cta
 from ..dsa import LAT_ROLE, PA_ROLE, DSARun, PreparedDSA, preprocess_dsa
 from ..errors import InputError
 from ..options import TTO_PX_CPU
-from ..render.volume import RenderVolume
+from ..render.density import DensityScale
+from ..render.volume import RenderVolume, coarse_mask, render_factors
 from ..volume import Volume
 from .progress import Monitor
 
@@ -81,7 +82,9 @@ def prepare_case(
     """Masks and render volume of the CTA (HU), preprocessed PA / lateral runs (docs/conventions.md 5;
     TTO targets at ``tto_px``, the networks' images clipped to ``model_clip_percentiles``).
 
-    Missing masks are computed from the CTA when first rendered (``geopose.cta.masks``); the
+    A CTA finer than ``render.volume.RENDER_GRID_MM`` is rendered, and its masks made, on its block means (given
+    masks: the blocks they fill at least half), in the CTA's own centred frame. Missing masks are computed from the
+    CTA when first rendered (``geopose.cta.masks``); the
     vessel mask is then a contrast-threshold approximation (empty for a CT without contrast) and
     ``labels_source`` says which, once it is computed. The
     'pa' run must look PA and the 'lat' run lateral by their primary angles.
@@ -100,14 +103,25 @@ def prepare_case(
     }
 
     def computed_vessels() -> Volume:
-        mask = vessel_mask_from_cta(cta)
+        mask = vessel_mask_from_cta(grid)
         source["vessels"] = f"computed from the CTA (no segmentation given): {mask.metadata['method']}"
         return mask
 
     monitor.step("prepare", 0.0, "CTA")
-    cranium = cranium_mask if cranium_mask is not None else (lambda: cranium_mask_from_cta(cta))
-    vessels = segmentation if segmentation is not None else computed_vessels
-    volume = RenderVolume(cta, {"cranium": cranium, "vessels": vessels}, finest_spacing_mm=work_spacing_mm)
+    factors = render_factors(cta.spacing_mm)
+    grid = cta.shrunk(factors)  # the CTA as rendered: itself unless finer than RENDER_GRID_MM
+
+    def on_grid(mask: Volume) -> Volume:
+        """A label volume on the CTA grid on the render grid: the whole blocks it fills at least half."""
+        if grid is cta:
+            return mask
+        k, j, i = (n * f for n, f in zip(grid.array.shape, factors[::-1]))
+        return grid.like(coarse_mask(np.asarray(mask.array[:k, :j, :i]) > 0, factors).astype(np.uint8))
+
+    cranium = (lambda: on_grid(cranium_mask)) if cranium_mask is not None else (lambda: cranium_mask_from_cta(grid))
+    vessels = (lambda: on_grid(segmentation)) if segmentation is not None else computed_vessels
+    volume = RenderVolume(grid, {"cranium": cranium, "vessels": vessels}, finest_spacing_mm=work_spacing_mm,
+                          scale=None if grid is cta else DensityScale.of(cta.array), centred_to_ras=cta.centred_to_ras)
     prepared: dict[str, PreparedDSA] = {}
     for i, key in enumerate(VIEW_KEYS):
         monitor.step("prepare", (i + 1) / 3, f"DSA {key.upper()}")

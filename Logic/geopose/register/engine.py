@@ -73,6 +73,7 @@ class Engine:
             "tto_px": case.views["pa"].tto_detector.shape,
             "model_clip_percentiles": list(options.model_clip_percentiles or self.models.clip_percentiles),
             "models": self.models.files,
+            "cta_render_grid_mm": [round(s, 3) for s in case.volume.cta.spacing_mm],
             "cta_levels_mm": {"x".join(map(str, f)): [round(s, 3) for s in lvl.spacing_mm]
                               for f, lvl in case.volume.levels.items()},
         }

@@ -74,12 +74,12 @@ class MirrorTest:
 
 def mirrored_volume(volume: RenderVolume, plane: Midplane) -> RenderVolume:
     """``volume``'s CTA and masks reflected across ``plane``, the head's own midsagittal plane
-    (``cta.symmetry.midsagittal_plane``), same grid, header and density scale: the head stays where it is, its sides
-    swapped, its HU read as ``volume``'s are."""
+    (``cta.symmetry.midsagittal_plane``), same grid, header, render frame and density scale: the head stays where it
+    is, its sides swapped, its HU read as ``volume``'s are."""
     masks = {name: mirrored_across(volume.cta.like(volume.mask(name).astype(np.uint8)), plane, labels=True)
              for name in ("cranium", "vessels") if volume.mask(name) is not None}
     return RenderVolume(mirrored_across(volume.cta, plane), masks, finest_spacing_mm=volume.finest_spacing_mm,
-                        scale=volume.scale)
+                        scale=volume.scale, centred_to_ras=volume.centred_to_ras)
 
 
 def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], tournament: Tournament, estimate: np.ndarray,

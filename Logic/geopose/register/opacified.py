@@ -83,7 +83,7 @@ class VesselSelection:
 def vessel_shift_mm(volume: RenderVolume, selection: VesselSelection, patient: np.ndarray) -> float:
     """Mean distance (mm) the kept vessels lie, in the isocentre frame, at patient pose ``patient`` from
     where they lay at the pose the selection was read at."""
-    points = volume.cta.centred_points(selection.kept_kji)
+    points = volume.centred_points(selection.kept_kji)
     if not len(points):
         return 0.0
     moved = np.linalg.solve(np.asarray(patient, dtype=np.float64), np.c_[points, np.ones(len(points))].T)
@@ -108,7 +108,7 @@ def read_opacified(
     if vessels is None or not vessels.any() or not images:
         return None
     kji = volume.mask_voxels("vessels")
-    points_mm = volume.cta.centred_points(kji)
+    points_mm = volume.centred_points(kji)
     shown = np.full(len(kji), np.inf)
     for name, image, det in images:
         smooth = gaussian_blur(image, (OPACIFIED_BLUR_PX, OPACIFIED_BLUR_PX))

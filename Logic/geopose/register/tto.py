@@ -169,7 +169,7 @@ class TTOImages:
             kji = volume.mask_voxels("vessels")
             if not len(kji):
                 kji = volume.mask_voxels("cranium")
-            self._valley_points = volume.cta.centred_points(kji[:: max(1, -(-len(kji) // VALLEY_POINTS))])
+            self._valley_points = volume.centred_points(kji[:: max(1, -(-len(kji) // VALLEY_POINTS))])
         return self._valley_points
 
     def loss(self, name: str, pose, size: str):

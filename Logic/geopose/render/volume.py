@@ -25,7 +25,7 @@ from ..images import block_mean
 from ..volume import Volume
 from .density import DensityScale
 
-__all__ = ["CHANNELS", "Level", "MaskSource", "RenderVolume", "coarse_mask", "footprint_mm"]
+__all__ = ["CHANNELS", "RENDER_GRID_MM", "Level", "MaskSource", "RenderVolume", "coarse_mask", "footprint_mm", "render_factors"]
 
 #: Channel names, in order: the total density, then the density inside each mask.
 CHANNELS = ("total", "cranium", "vessels")
@@ -34,9 +34,20 @@ MAX_FACTOR = 8
 #: Full-grid slices processed at once while building a level (times the level's k factor).
 SLAB_SLICES = 16
 
+#: A CTA finer than this (mm) along an axis is rendered from its block means (:func:`render_factors`): no render samples
+#: a finer grid (the finest level is 2 mm on a CPU, about 1 mm at CUDA's 256 px), and the levels and masks of a 0.5 mm
+#: 512^3 CTA are made from an eighth of its voxels.
+RENDER_GRID_MM = 1.0
+
 #: A mask: a label Volume on the CTA grid (``> 0`` inside), or a function that computes one
 #: from the CTA (called once, on first use).
 MaskSource = Union[Volume, Callable[[], Volume]]
+
+
+def render_factors(spacing_mm: tuple[float, float, float], grid_mm: float = RENDER_GRID_MM) -> tuple[int, int, int]:
+    """Block factors (i, j, k) that bring each voxel size ``spacing_mm`` up to at most ``grid_mm`` (1 where it is not
+    finer): the CTA as rendered is ``cta.shrunk(render_factors(cta.spacing_mm))``."""
+    return tuple(max(1, int(np.floor(grid_mm / s + 1e-6))) for s in spacing_mm)
 
 
 def footprint_mm(pixel_mm: float, sdd_mm: float, source_distance_mm: float) -> float:
@@ -82,12 +93,14 @@ class RenderVolume:
     ``masks`` maps channel names (``cranium``, ``vessels``) to a :data:`MaskSource` on the
     CTA grid; a channel without a mask is all zeros. ``finest_spacing_mm`` bounds the
     voxel size of the finest level from below (the CTA's own when None); ``scale``: the HU -> density
-    map (default: the CTA's own, :class:`DensityScale`). The CTA array is read, never changed.
+    map (default: the CTA's own, :class:`DensityScale`); ``centred_to_ras``: the render (world) frame, 4x4 to RAS
+    (default: the CTA's centred frame; the render grid of a finer CTA keeps that CTA's, :func:`render_grid`). The CTA
+    array is read, never changed.
     """
 
     def __init__(
         self, cta: Volume, masks: Mapping[str, MaskSource] | None = None, *, finest_spacing_mm: float | None = None,
-        scale: DensityScale | None = None,
+        scale: DensityScale | None = None, centred_to_ras: np.ndarray | None = None,
     ) -> None:
         unknown = set(masks or {}) - set(CHANNELS[1:])
         if unknown:
@@ -99,6 +112,18 @@ class RenderVolume:
         self.finest_spacing_mm = finest_spacing_mm
         self._levels: dict[tuple[int, int, int], Level] = {}
         self._scale = scale
+        self.centred_to_ras = cta.centred_to_ras if centred_to_ras is None else np.asarray(centred_to_ras, dtype=np.float64)
+
+    @property
+    def ijk_to_world(self) -> np.ndarray:
+        """4x4 from CTA voxel index to the render frame (mm)."""
+        return np.linalg.inv(self.centred_to_ras) @ self.cta.ijk_to_ras
+
+    def centred_points(self, kji: np.ndarray) -> np.ndarray:
+        """Voxel centres ``(N, 3)`` (render frame, mm) of CTA array indices ``kji`` ``(N, 3)`` (``[k, j, i]`` order)."""
+        kji = np.asarray(kji)
+        ijk1 = np.column_stack((kji[:, ::-1].astype(np.float64), np.ones(len(kji))))
+        return (ijk1 @ self.ijk_to_world.T)[:, :3]
 
     @property
     def channel_names(self) -> tuple[str, ...]:
@@ -211,14 +236,13 @@ class RenderVolume:
         # Index of level voxel (i, j, k) in full-grid index units: its block centre.
         scale = np.diag([fi, fj, fk, 1.0]).astype(np.float64)
         scale[:3, 3] = (np.asarray([fi, fj, fk], dtype=np.float64) - 1.0) / 2.0 + np.asarray([fi, fj, fk]) * lo[::-1]
-        return Level(density, self.cta.ijk_to_centred @ scale, (fi, fj, fk), tuple(int(v) for v in lo))
+        return Level(density, self.ijk_to_world @ scale, (fi, fj, fk), tuple(int(v) for v in lo))
 
     def coarsened(self, factors: tuple[int, int, int]) -> tuple["RenderVolume", np.ndarray]:
         """This CTA and its masks on the block grid of ``factors`` (i, j, k): HU block means under this CTA's density
         scale, a mask keeping the blocks it fills at least half (no copy of the full grid is made); and the ``(4, 4)``
-        shift (mm) from this
-        CTA's centred frame to the block grid's (a pose ``T`` here is ``shift @ T`` there). Itself and the
-        identity for factors of 1."""
+        shift (mm) from this volume's render frame to the block grid's centred frame (a pose ``T`` here is ``shift @ T``
+        there). Itself and the identity for factors of 1."""
         factors = tuple(int(f) for f in factors)
         if factors == (1, 1, 1):
             return self, np.eye(4)
@@ -229,7 +253,7 @@ class RenderVolume:
         masks = {name: cta.like(coarse_mask(mask, factors).astype(np.uint8))
                  for name in CHANNELS[1:] if (mask := self.mask(name)) is not None}
         shift = np.eye(4)
-        shift[:3, 3] = self.cta.centre_ras - cta.centre_ras
+        shift[:3, 3] = self.centred_to_ras[:3, 3] - cta.centre_ras
         return RenderVolume(cta, masks, scale=self.scale), shift
 
     def with_vessels(self, kept_kji: np.ndarray) -> "RenderVolume":
@@ -246,7 +270,7 @@ class RenderVolume:
         kji = kji[vessels[tuple(kji.T)]] if vessels is not None else kji[:0]
         keep = np.zeros(self.cta.array.shape, dtype=bool)
         keep[tuple(kji.T)] = True
-        out = RenderVolume(self.cta, finest_spacing_mm=self.finest_spacing_mm)
+        out = RenderVolume(self.cta, finest_spacing_mm=self.finest_spacing_mm, centred_to_ras=self.centred_to_ras)
         out._mask_sources, out._masks, out._scale = dict(self._mask_sources), dict(self._masks), self.scale
         out._masks["vessels"] = keep
         out._voxels["vessels"] = kji
