@@ -211,6 +211,22 @@ def test_numpy_ncc_family_equals_the_differentiable_one():
         S.mncc(a[0, 0].numpy(), b[0, 0, :-1].numpy())
 
 
+def test_an_mncc_target_scores_as_mncc_bit_for_bit():
+    """Greedy Refine and the search score many renders against one target with its terms computed once: each score
+    must be ``mncc``'s exactly (a decision there flips on 1e-3), constant images and every patch included."""
+    a, b = smooth_image(seed=5).double().numpy(), smooth_image(seed=6).double().numpy()
+    target = S.MNCCTarget(a[0, 0])
+    images = [b[i, 0] for i in range(len(b))] + [a[0, 0], np.full_like(a[0, 0], 3.0), 2.0 * a[0, 0] + b[0, 0]]
+    for image in images:
+        assert target(image) == S.mncc(a[0, 0], image)
+    assert target(a[0, 0]) == pytest.approx(1.0, abs=1e-3) and target(images[-2]) == pytest.approx(0.0, abs=1e-6)
+    assert S.MNCCTarget(np.zeros((20, 20)))(a[0, 0, :20, :20]) == S.mncc(np.zeros((20, 20)), a[0, 0, :20, :20])
+    with pytest.raises(ValueError, match="same shape"):
+        target(b[0, 0, :-1])
+    with pytest.raises(ValueError, match="patch"):
+        S.MNCCTarget(np.ones((8, 30)))
+
+
 def test_view_accuracy():
     assert view_accuracy(np.array([0, 1, 2, 2]), np.array([0, 1, 1, 2])) == 0.75
     assert view_accuracy([1], [1]) == 1.0

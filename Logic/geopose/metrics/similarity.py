@@ -13,7 +13,7 @@ import numpy as np
 
 from ..contract import MNCC_GLOBAL_WEIGHT, MNCC_PATCH_PX, NCC_EPS
 
-__all__ = ["ncc", "local_ncc", "mncc", "generalized_dice_loss"]
+__all__ = ["ncc", "local_ncc", "mncc", "MNCCTarget", "generalized_dice_loss"]
 
 
 def _check_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -36,31 +36,70 @@ def _box_mean(x: np.ndarray, patch_px: int) -> np.ndarray:
     return (c[p:, p:] - c[:-p, p:] - c[p:, :-p] + c[:-p, :-p]) / (p * p)
 
 
+def _global_terms(x: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """An image brought to zero mean and unit range, and that z-scored (the global NCC's term)."""
+    x = _unit_range(x)
+    return x, (x - x.mean()) / np.sqrt(x.var() + eps)
+
+
+def _patch_terms(x: np.ndarray, patch_px: int, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per ``patch_px`` patch of a unit-range image: its mean and its variance plus ``eps``."""
+    mu = _box_mean(x, patch_px)
+    return mu, np.maximum(_box_mean(x * x, patch_px) - mu * mu, 0.0) + eps
+
+
+def _patch_ncc(a: np.ndarray, mu_a: np.ndarray, var_a: np.ndarray, b: np.ndarray, mu_b: np.ndarray, var_b: np.ndarray,
+               patch_px: int) -> float:
+    cov = _box_mean(a * b, patch_px) - mu_a * mu_b
+    return float(np.clip(cov / np.sqrt(var_a * var_b), -1.0, 1.0).mean())
+
+
+def _check_patch(shape: tuple[int, ...], patch_px: int) -> None:
+    if min(shape) < patch_px:
+        raise ValueError(f"images of {shape} px are smaller than the {patch_px} px NCC patch")
+
+
 def ncc(a: np.ndarray, b: np.ndarray, eps: float = NCC_EPS) -> float:
     """Global normalised cross-correlation in [-1, 1]."""
     a, b = _check_pair(a, b)
-    a, b = _unit_range(a), _unit_range(b)
-    za = (a - a.mean()) / np.sqrt(a.var() + eps)
-    zb = (b - b.mean()) / np.sqrt(b.var() + eps)
-    return float((za * zb).mean())
+    return float((_global_terms(a, eps)[1] * _global_terms(b, eps)[1]).mean())
 
 
 def local_ncc(a: np.ndarray, b: np.ndarray, patch_px: int = MNCC_PATCH_PX, eps: float = NCC_EPS) -> float:
     """Mean NCC over all ``patch_px`` x ``patch_px`` patches, each clamped to [-1, 1]."""
     a, b = _check_pair(a, b)
-    if min(a.shape) < patch_px:
-        raise ValueError(f"images of {a.shape} px are smaller than the {patch_px} px NCC patch")
+    _check_patch(a.shape, patch_px)
     a, b = _unit_range(a), _unit_range(b)
-    mu_a, mu_b = _box_mean(a, patch_px), _box_mean(b, patch_px)
-    var_a = np.maximum(_box_mean(a * a, patch_px) - mu_a * mu_a, 0.0)
-    var_b = np.maximum(_box_mean(b * b, patch_px) - mu_b * mu_b, 0.0)
-    cov = _box_mean(a * b, patch_px) - mu_a * mu_b
-    return float(np.clip(cov / np.sqrt((var_a + eps) * (var_b + eps)), -1.0, 1.0).mean())
+    return _patch_ncc(a, *_patch_terms(a, patch_px, eps), b, *_patch_terms(b, patch_px, eps), patch_px)
 
 
 def mncc(a: np.ndarray, b: np.ndarray, patch_px: int = MNCC_PATCH_PX, eps: float = NCC_EPS) -> float:
     """Multiscale NCC: ``MNCC_GLOBAL_WEIGHT`` x global NCC + the rest x mean patch NCC."""
-    return MNCC_GLOBAL_WEIGHT * ncc(a, b, eps) + (1.0 - MNCC_GLOBAL_WEIGHT) * local_ncc(a, b, patch_px, eps)
+    return MNCCTarget(a, patch_px, eps)(b)
+
+
+class MNCCTarget:
+    """:func:`mncc` of one ``target`` ``(H, W)`` against many images (``score(image)``), the target's terms computed
+    once: the same value as ``mncc(target, image)``, bit for bit."""
+
+    def __init__(self, target: np.ndarray, patch_px: int = MNCC_PATCH_PX, eps: float = NCC_EPS) -> None:
+        target = np.asarray(target, dtype=np.float64)
+        if target.ndim != 2:
+            raise ValueError(f"expected an (H, W) image, got {target.shape}")
+        _check_patch(target.shape, patch_px)
+        self.shape, self.patch_px, self.eps = target.shape, patch_px, eps
+        self._unit, self._z = _global_terms(target, eps)
+        self._mu, self._var = _patch_terms(self._unit, patch_px, eps)
+
+    def __call__(self, image: np.ndarray) -> float:
+        """The mNCC of the target and ``image`` (same shape)."""
+        image = np.asarray(image, dtype=np.float64)
+        if image.shape != self.shape:
+            raise ValueError(f"expected two (H, W) images of the same shape, got {self.shape} and {image.shape}")
+        unit, z = _global_terms(image, self.eps)
+        global_ncc = float((self._z * z).mean())
+        local = _patch_ncc(self._unit, self._mu, self._var, unit, *_patch_terms(unit, self.patch_px, self.eps), self.patch_px)
+        return MNCC_GLOBAL_WEIGHT * global_ncc + (1.0 - MNCC_GLOBAL_WEIGHT) * local
 
 
 def generalized_dice_loss(pred: np.ndarray, target: np.ndarray) -> float:

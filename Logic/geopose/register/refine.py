@@ -18,7 +18,7 @@ from typing import Mapping
 import numpy as np
 
 from ..geometry.poses import invert
-from ..metrics.similarity import mncc
+from ..metrics.similarity import MNCCTarget
 from ..nets.predictors import RefinePredictor
 from ..options import RefineOptions
 from ..render.renderer import Renderer
@@ -42,15 +42,16 @@ def greedy_refine(
 ) -> RefineTrace:
     """Refine ``pose`` ``(4, 4)`` against a model-geometry ``target`` ``(1, 1, 256, 256)``."""
     monitor = monitor or Monitor()
+    mncc = MNCCTarget(target[0, 0])
     current = np.asarray(pose, dtype=np.float64)
     image = render_model_view(renderer, current, render_px)
-    start, start_score = current, mncc(target[0, 0], image[0, 0])
+    start, start_score = current, mncc(image[0, 0])
     score, proposals = start_score, []
     for k in range(max_proposals):
         monitor.step("refine", k / max_proposals, f"proposal {k + 1}/{max_proposals}")
         candidate = invert(refine.predict_residual(target, image, view)[0]) @ current
         cand_image = render_model_view(renderer, candidate, render_px)
-        cand_score = mncc(target[0, 0], cand_image[0, 0])
+        cand_score = mncc(cand_image[0, 0])
         accepted = cand_score > score
         proposals.append(Proposal(candidate, cand_score, accepted))
         if not accepted:
@@ -99,11 +100,12 @@ def refine_from_starts(
     monitor = monitor or Monitor()
     keys = list(rig)
     X = {name: np.asarray(pose, dtype=np.float64) for name, pose in starts.items()}
+    similarity = {k: MNCCTarget(targets[k][0, 0]) for k in keys}
 
     def render_all(poses: Mapping[str, np.ndarray]) -> tuple[dict, dict]:
         """Model-view images ``{start: {view: (1, 1, 256, 256)}}`` and their mNCC ``{start: {view: float}}``."""
         images = {n: {k: render_model_view(renderer, pose @ rig[k], render_px) for k in keys} for n, pose in poses.items()}
-        return images, {n: {k: mncc(targets[k][0, 0], im[k][0, 0]) for k in keys} for n, im in images.items()}
+        return images, {n: {k: similarity[k](im[k][0, 0]) for k in keys} for n, im in images.items()}
 
     images, scores = render_all(X)
     first = {n: {k: (X[n] @ rig[k], scores[n][k]) for k in keys} for n in X}

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..geometry.detector import Detector
 from ..images import resize_bilinear
-from ..metrics.similarity import mncc
+from ..metrics.similarity import MNCCTarget
 from ..options import SearchOptions
 from ..render.renderer import Renderer
 from .biplane import central_ray, moved_by
@@ -61,12 +61,12 @@ def similarity_search(
     def scorer(px: int):
         """The views' mean mNCC of a patient pose, both images at ``px`` pixels per side."""
         detector = Detector.model().resized(px)
-        small = {k: resize_bilinear(targets[k][0], (px, px))[0] for k in keys}
+        small = {k: MNCCTarget(resize_bilinear(targets[k][0], (px, px))[0]) for k in keys}
 
         def score(Y: np.ndarray) -> float:
             images = renderer.render(np.stack([Y @ rig[k] for k in keys]), detector, ("total",))
             evaluations[0] += 1
-            return float(np.mean([mncc(small[k], images[j, 0]) for j, k in enumerate(keys)]))
+            return float(np.mean([small[k](images[j, 0]) for j, k in enumerate(keys)]))
 
         return score
 
