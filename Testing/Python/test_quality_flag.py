@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from geopose.register.quality import DICE_OK, assess
+from geopose.register.quality import AGREEMENT_DEG, AGREEMENT_MM, DICE_OK, assess
 
 
 def test_good_numbers_are_ok_even_with_the_silhouette_dice_of_a_good_pose():
@@ -18,8 +18,11 @@ def test_a_silhouette_clearly_off_is_doubtful_and_far_off_failed():
 
 
 def test_stages_that_disagree_or_a_failed_check_make_it_doubtful():
-    turned = assess(0.62, 0.8, 7.5, 3.0)
-    assert turned.flag == "doubtful" and "turned the pose 7.5 deg" in turned.reasons[0]
+    # validation: the TTO corrected the networks' estimate by up to 14 deg where the result was < 2 mm
+    assert assess(0.62, 0.8, 14.0, 3.0).flag == "ok"
+    turned = assess(0.62, 0.8, AGREEMENT_DEG + 1.5, 3.0)
+    assert turned.flag == "doubtful" and f"turned the pose {AGREEMENT_DEG + 1.5:.1f} deg" in turned.reasons[0]
+    assert assess(0.62, 0.8, 3.0, AGREEMENT_MM + 1.0).flag == "doubtful"
     assert assess(0.62, 0.8, 1.0, 3.0, doubts=("the two views place the patient 25 mm apart",)).flag == "doubtful"
 
 

@@ -35,7 +35,11 @@ DICE_FAILED: Final = 0.6
 #: silhouette clearly off; at 0.85 it called 62 of 84 benchmark views doubtful. Benchmark (42 held-out phantoms):
 #: "ok" on 30 of 34 views < 2 mm (88 %, was 29 %) and on none > 5 mm (docs/benchmark/quality_flag.md).
 DICE_OK: Final = 0.70
-AGREEMENT_DEG: Final = 6.0
+#: Recalibrated on validation (session 37: phantoms 6010-6029 and real heads with arteries, default path,
+#: docs/benchmark/quality_validation.jsonl): the TTO corrects the networks' estimate by up to 14.0 deg where the
+#: result is < 2 mm (the estimate is about 6 deg off on average), and the one view > 5 mm with a larger turn turned
+#: 16.3 deg; at 6 deg 6 of 35 views < 2 mm were doubtful for this reason alone (docs/benchmark/quality_flag.md).
+AGREEMENT_DEG: Final = 15.0
 AGREEMENT_MM: Final = 20.0
 VIEW_DISAGREEMENT_MM: Final = 20.0
 VESSEL_NCC_FAILED: Final = 0.1
