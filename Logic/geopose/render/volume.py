@@ -4,11 +4,12 @@ Channel 0 is the total density (HU -> [0, 1], docs/conventions.md section 3); ea
 further channel is the density inside one mask (``cranium``, ``vessels``). A *level*
 is the CTA grid block-averaged by a power-of-two factor per axis, cropped to the
 box holding any density: a render samples the coarsest level whose voxels are no
-larger than its detector pixels at the volume centre (:meth:`RenderVolume.level_for`),
-so the 96-px network renders of a 0.5 mm CTA sample a 2 mm grid and its 128-px TTO
-renders a 1 mm one. Levels are built on first use, slab by slab (memory stays at a
-few slabs of the full grid), and cached; the density scale is fixed by the full
-grid, so every level shows the same values. A render of the total density alone gets
+larger than its detector pixels at the volume centre (:meth:`RenderVolume.level_for`).
+A CTA finer than :data:`RENDER_GRID_MM` is rendered from its block means (:func:`render_factors`,
+``register/case.py``) in its own centred frame: no render samples finer, so the levels of a 0.5 mm
+512^3 CTA come from an eighth of its voxels. Levels are built on first use, slab by slab (memory
+stays at a few slabs of the full grid), and cached; the density scale is fixed by the full grid,
+so every level shows the same values. A render of the total density alone gets
 a level without the mask channels, so the masks (the vessel mask computed from a CTA
 takes seconds) are made only when a render needs them; the level then gains them, its
 total channel and crop unchanged. numpy only.
@@ -58,7 +59,7 @@ def footprint_mm(pixel_mm: float, sdd_mm: float, source_distance_mm: float) -> f
 @dataclass(frozen=True)
 class Level:
     """One working grid: ``density`` ``(C, K, J, I)`` float32 (channels as :data:`CHANNELS`),
-    ``ijk_to_world`` 4x4 from voxel index to the centred CTA frame (mm), the block
+    ``ijk_to_world`` 4x4 from voxel index to the render frame (the CTA's centred frame, mm), the block
     ``factors`` (i, j, k) it was averaged by, the index ``origin_blocks`` (k, j, i) of its first
     block on the block grid of the whole CTA (where the crop began), and the ray-marching step (mm)."""
 
