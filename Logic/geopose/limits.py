@@ -14,7 +14,7 @@ from typing import Final
 from .errors import InputError
 
 __all__ = [
-    "REFINE_STEPS", "ITERATIONS", "TTO_PX", "RENDER_PX", "WORK_SPACING_MM", "CLIP_PERCENTILE",
+    "REFINE_STEPS", "ITERATIONS", "TTO_PX", "RENDER_PX", "VOXEL_PER_PIXEL", "WORK_SPACING_MM", "CLIP_PERCENTILE",
     "CTA_VOXEL_SIZE_MM", "CTA_EXTENT_MM", "CTA_VOXELS_PER_AXIS", "CTA_MAX_VOXELS", "CTA_RESAMPLE_MAX_GROWTH", "CTA_PLAUSIBLE_HU",
     "CTA_MAX_IMPLAUSIBLE_SHARE", "CTA_AIR_MAX_HU", "CTA_MIN_SPAN_HU", "HU_OFFSET",
     "SLICE_GAP_TOLERANCE", "SLICE_GAP_TOLERANCE_MM", "SLICE_ORIENTATION_TOLERANCE",
@@ -34,6 +34,8 @@ ITERATIONS: Final = (0, 2000)
 TTO_PX: Final = (32, 1024)
 #: Network-input render size (pixels along a side) before resizing to the model detector.
 RENDER_PX: Final = (32, 512)
+#: Voxels per pixel footprint of the coarsest CTA level a render may sample.
+VOXEL_PER_PIXEL: Final = (0.5, 8.0)
 #: Voxel size (mm) of the working copy of the CTA the renderers sample.
 WORK_SPACING_MM: Final = (0.25, 4.0)
 #: Intensity clip percentiles of a MAP.

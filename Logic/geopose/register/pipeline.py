@@ -90,14 +90,15 @@ def register_case(
         calibration = calibrate(renderer, nets.init, render_px, monitor)
     with clock("init", engine):
         init = biplane_init(case, nets.init, calibration, rig, monitor)
+    estimator = renderer.sampling(options.estimate_voxel_per_pixel)  # Refine's and the search's coarser levels
     with clock("refine", engine):
-        refined = refine_from_starts(renderer, case.model_targets(), refine_starts(init), rig, case.view_labels(),
+        refined = refine_from_starts(estimator, case.model_targets(), refine_starts(init), rig, case.view_labels(),
                                      nets.refine, render_px, options.refine, monitor=monitor)
     learned = {key: trace.pose for key, trace in refined.traces.items()}
     estimate, X_learned, search = REFINED_START, patient_pose(learned["pa"], rig["pa"]), None
     if options.search.enabled:
         with clock("search", engine):
-            search = similarity_search(renderer, case.model_targets(), X_learned, rig, render_px, options.search.schedule,
+            search = similarity_search(estimator, case.model_targets(), X_learned, rig, render_px, options.search.schedule,
                                        monitor)
         estimate, X_learned, learned = SEARCHED_START, search.patient_pose, view_poses(search.patient_pose, rig)
     tournament, measured = None, None

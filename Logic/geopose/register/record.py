@@ -19,6 +19,8 @@ from ..geometry.poses import params_from_pose, pose_from_carm_angles
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 13: ``engine.cta_render_grid_mm`` (the voxel size of the grid the CTA is rendered on: its own, or its block means
+#: where it is finer than ``render.volume.RENDER_GRID_MM``) and the option ``estimate_voxel_per_pixel``.
 #: 12: ``registration.tto_stopped_behind`` (a finalist of the TTO's tournament stopped after the coarse steps: how
 #: far it was behind the leader there, by one objective).
 #: 11: ``work``: per stage the renders, rays and ray points (samples x channels) both kernels did, and the
@@ -49,7 +51,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 12
+SCHEMA_VERSION = 13
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 

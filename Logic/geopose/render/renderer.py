@@ -13,6 +13,7 @@ rendering at ``render_px`` and resizing as the networks were trained. The kernel
 
 from __future__ import annotations
 
+import copy
 from typing import Sequence
 
 import numpy as np
@@ -49,6 +50,13 @@ class Renderer:
 
     def __init__(self, volume: RenderVolume) -> None:
         self.volume = volume
+
+    def sampling(self, voxel_per_pixel: float) -> "Renderer":
+        """This renderer (its volume and kernels shared) sampling the coarsest level whose voxels are at most
+        ``voxel_per_pixel`` of its pixels' footprints."""
+        out = copy.copy(self)
+        out.voxel_per_pixel = float(voxel_per_pixel)
+        return out
 
     @staticmethod
     def channel_index(channels: Sequence[str]) -> tuple[int, ...]:
