@@ -231,11 +231,12 @@ class RegistrationOptions(_Group):
         None, "percentiles the networks' MAP is clipped to (default: the models' manifest, else "
         f"{' '.join(f'{p:g}' for p in C.MAP_CLIP_PERCENTILES)}); the TTO target keeps "
         f"{' '.join(f'{p:g}' for p in C.MAP_CLIP_PERCENTILES)}", kind="percentiles")
-    #: Validation 6010-6029 (default path, 2 mm; experiments/refine_starts/refine_starts.md): at 3 rather than the
-    #: renderers' 1.5 the result before the TTO took 3.3 -> 2.3 s, the final result 1.06 -> 1.05 mm.
-    estimate_voxel_per_pixel: float = setting(3.0, "greedy Refine and the similarity search render the coarsest CTA level "
-                                              "whose voxels are at most this many pixel footprints (the TTO, the scores: "
-                                              "1.5)", bounds=L.VOXEL_PER_PIXEL)
+    #: At 3 (experiments/refine_starts/refine_starts.md) the result before the TTO takes 1.0-1.2 s less; validation
+    #: 6010-6029 kept its accuracy (1.06 -> 1.05 mm), the benchmark did not quite (views < 5 mm 95.2 -> 94.0 %,
+    #: rotation 2.92 -> 3.07 deg, one view > 5 mm flagged "ok"), so the default stays the renderers' own.
+    estimate_voxel_per_pixel: float = setting(1.5, "greedy Refine and the similarity search render the coarsest CTA level "
+                                              "whose voxels are at most this many pixel footprints (3: about 1 s faster, "
+                                              "see experiments/refine_starts)", bounds=L.VOXEL_PER_PIXEL)
     work_spacing_mm: float | None = setting(None, "finest voxel size (mm) the renderers sample (default: the CTA's)",
                                             kind="float", bounds=L.WORK_SPACING_MM)
     independent_views: bool = setting(False, "register each view on its own (the published pipeline) instead of one "

@@ -192,8 +192,8 @@ def test_a_render_samples_the_level_its_pixels_resolve():
     assert renderer.level_for_pose(isopose(C.VIEW_PA), model).factors == (2, 2, 2)
     # The 256-px model detector: 0.76 mm footprints, 1.15 mm voxels at most: the CTA's own grid.
     assert renderer.level_for_pose(isopose(C.VIEW_PA), Detector.model()).factors == (1, 1, 1)
-    # Greedy Refine and the search sample up to 3 footprints (6.1 mm): the same volume and kernels, a coarser level.
-    estimator = renderer.sampling(RegistrationOptions().estimate_voxel_per_pixel)
+    # Greedy Refine and the search may sample up to 3 footprints (6.1 mm): the same volume and kernels, a coarser level.
+    estimator = renderer.sampling(3.0)
     assert estimator.level_for_pose(isopose(C.VIEW_PA), model).factors == (4, 4, 4) and renderer.voxel_per_pixel == 1.5
     estimator.render(isopose(C.VIEW_PA), model)
     assert estimator.volume is renderer.volume and (4, 4, 4) in renderer.volume.levels

@@ -171,9 +171,7 @@ def test_one_views_init_alone_is_a_start_when_the_other_view_is_far_off(phantom_
     seen: list[float] = []
     result = register_case(
         cta, runs, models=oracle_models(init, OracleRefine([])), segmentation=labels.like(L.vessel_mask(labels.array).astype(np.uint8)),
-        # all five tried; the search on the renderers' own levels, whose reach this case was made for (on the default
-        # coarser ones it carries the fused Init close enough to win, so this start is not the one under test)
-        options=RegistrationOptions(backend="torch", device="cpu", tto=TTOSchedule(px=96, starts=5), estimate_voxel_per_pixel=1.5),
+        options=RegistrationOptions(backend="torch", device="cpu", tto=TTOSchedule(px=96, starts=5)),  # all five tried
         progress=lambda stage, f, message: seen.append(f) if stage == "tto" else None,
     )
     # The tournament's progress rises steadily through every start's share to the end.

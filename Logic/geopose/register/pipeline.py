@@ -90,7 +90,7 @@ def register_case(
         calibration = calibrate(renderer, nets.init, render_px, monitor)
     with clock("init", engine):
         init = biplane_init(case, nets.init, calibration, rig, monitor)
-    estimator = renderer.sampling(options.estimate_voxel_per_pixel)  # Refine's and the search's coarser levels
+    estimator = renderer.sampling(options.estimate_voxel_per_pixel)  # the levels Refine and the search render
     with clock("refine", engine):
         refined = refine_from_starts(estimator, case.model_targets(), refine_starts(init), rig, case.view_labels(),
                                      nets.refine, render_px, options.refine, monitor=monitor)
