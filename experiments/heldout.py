@@ -10,7 +10,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator, TextIO
 
 import torch
 
@@ -37,6 +37,17 @@ def parse_heldout_args(description: str, default_seeds: str) -> tuple[argparse.N
     if clash:
         raise SystemExit(f"seeds {sorted(clash)} were used to train the shipped models: choose held-out seeds")
     return args, seeds
+
+
+def heldout_phantoms(description: str, default_seeds: str) -> Iterator[tuple[argparse.Namespace, BenchCase, TextIO]]:
+    """For the scripts that write one JSON line per held-out phantom: parse the arguments
+    (:func:`parse_heldout_args`), then yield ``(args, case, out)`` per seed, each phantom written to a temporary
+    folder, ``out`` the ``--doc`` file (else stdout)."""
+    args, seeds = parse_heldout_args(description, default_seeds)
+    out = open(args.doc, "w") if args.doc else sys.stdout
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in seeds:
+            yield args, phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm), out
 
 
 def error_cell(err: tuple[float, float, float | None]) -> str:

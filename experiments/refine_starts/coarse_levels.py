@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from heldout import parse_heldout_args  # noqa: E402
+from heldout import heldout_phantoms  # noqa: E402
 
-from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.nets import load_models  # noqa: E402
 from geopose.options import RegistrationOptions  # noqa: E402
 from geopose.register import register_case  # noqa: E402
@@ -27,26 +25,22 @@ SETTINGS = (("default", 1.5), ("coarse", 3.0))
 
 
 def main() -> None:
-    args, seeds = parse_heldout_args(__doc__.splitlines()[0], "6010-6029")
     models = load_models(runtime="torch")
-    out = open(args.doc, "w") if args.doc else sys.stdout
-    with tempfile.TemporaryDirectory() as tmp:
-        for seed in seeds:
-            case = phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm)
+    for _, case, out in heldout_phantoms(__doc__.splitlines()[0], "6010-6029"):
 
-            def mpcd(poses: dict) -> list[float]:
-                return [round(carotid_mpcd(poses[k], case.true_poses[k], case.runs[k].detector, case.runs[k].angles.sod_mm,
-                                           case.carotid_points_mm)[0].detector_mm, 3) for k in ("pa", "lat")]
+        def mpcd(poses: dict) -> list[float]:
+            return [round(carotid_mpcd(poses[k], case.true_poses[k], case.runs[k].detector, case.runs[k].angles.sod_mm,
+                                       case.carotid_points_mm)[0].detector_mm, 3) for k in ("pa", "lat")]
 
-            row = {"seed": seed}
-            for name, voxel_per_pixel in SETTINGS:
-                reg = register_case(case.cta, case.runs, models=models,
-                                    options=RegistrationOptions(estimate_voxel_per_pixel=voxel_per_pixel))
-                row[name] = {"final": mpcd({k: v.final_pose for k, v in reg.views.items()}),
-                             "estimate": mpcd({k: v.search_pose for k, v in reg.views.items()}),
-                             "flags": [reg.views[k].quality.flag for k in ("pa", "lat")],
-                             "t": {k: round(v, 2) for k, v in reg.runtimes_s.items()}}
-            print(json.dumps(row), file=out, flush=True)
+        row = {"seed": int(case.name.split("-")[-1])}
+        for name, voxel_per_pixel in SETTINGS:
+            reg = register_case(case.cta, case.runs, models=models,
+                                options=RegistrationOptions(estimate_voxel_per_pixel=voxel_per_pixel))
+            row[name] = {"final": mpcd({k: v.final_pose for k, v in reg.views.items()}),
+                         "estimate": mpcd({k: v.search_pose for k, v in reg.views.items()}),
+                         "flags": [reg.views[k].quality.flag for k in ("pa", "lat")],
+                         "t": {k: round(v, 2) for k, v in reg.runtimes_s.items()}}
+        print(json.dumps(row), file=out, flush=True)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -18,9 +17,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from heldout import parse_heldout_args  # noqa: E402
+from heldout import heldout_phantoms  # noqa: E402
 
-from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.nets import load_models  # noqa: E402
 from geopose.options import RegistrationOptions  # noqa: E402
 from geopose.register.biplane import nominal_poses  # noqa: E402
@@ -47,34 +45,30 @@ def course(trace_by_view: dict) -> list[float]:
 
 
 def main() -> None:
-    args, seeds = parse_heldout_args(__doc__.splitlines()[0], "6010-6029")
     models = load_models(runtime="torch")
     options = RegistrationOptions()
-    out = open(args.doc, "w") if args.doc else sys.stdout
-    with tempfile.TemporaryDirectory() as tmp:
-        for seed in seeds:
-            case = phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm)
-            engine, prepared = start_case(case.cta, case.runs, options, models, cranium_mask=None, segmentation=None,
-                                          dsa_masks=None, monitor=Monitor())
-            rig = nominal_poses(case.runs)
-            calibration = calibrate(engine.renderer, models.init, engine.render_px)
-            init = biplane_init(prepared, models.init, calibration, rig, Monitor())
-            starts = refine_starts(init)
-            targets, labels = prepared.model_targets(), prepared.view_labels()
-            t0 = time.perf_counter()
-            joint = refine_from_starts(engine.renderer, targets, starts, rig, labels, models.refine, engine.render_px,
-                                       options.refine)
-            seconds = time.perf_counter() - t0
-            row = {"seed": seed, "kept": joint.start, "lockstep_s": round(seconds, 3), "starts": {}}
-            for name, X in starts.items():
-                alone = refine_from_starts(engine.renderer, targets, {name: X}, rig, labels, models.refine,
-                                           engine.render_px, options.refine)
-                mm = [round(carotid_mpcd(t.pose, case.true_poses[k], case.runs[k].detector, case.runs[k].angles.sod_mm,
-                                         case.carotid_points_mm)[0].detector_mm, 3) for k, t in alone.traces.items()]
-                row["starts"][name] = {"course": [round(s, 5) for s in course(alone.traces)], "mpcd_mm": mm,
-                                       "proposals": len(alone.traces["pa"].proposals)}
-            print(json.dumps(row), file=out, flush=True)
-
+    for _, case, out in heldout_phantoms(__doc__.splitlines()[0], "6010-6029"):
+        seed = int(case.name.split("-")[-1])
+        engine, prepared = start_case(case.cta, case.runs, options, models, cranium_mask=None, segmentation=None,
+                                      dsa_masks=None, monitor=Monitor())
+        rig = nominal_poses(case.runs)
+        calibration = calibrate(engine.renderer, models.init, engine.render_px)
+        init = biplane_init(prepared, models.init, calibration, rig, Monitor())
+        starts = refine_starts(init)
+        targets, labels = prepared.model_targets(), prepared.view_labels()
+        t0 = time.perf_counter()
+        joint = refine_from_starts(engine.renderer, targets, starts, rig, labels, models.refine, engine.render_px,
+                                   options.refine)
+        seconds = time.perf_counter() - t0
+        row = {"seed": seed, "kept": joint.start, "lockstep_s": round(seconds, 3), "starts": {}}
+        for name, X in starts.items():
+            alone = refine_from_starts(engine.renderer, targets, {name: X}, rig, labels, models.refine,
+                                       engine.render_px, options.refine)
+            mm = [round(carotid_mpcd(t.pose, case.true_poses[k], case.runs[k].detector, case.runs[k].angles.sod_mm,
+                                     case.carotid_points_mm)[0].detector_mm, 3) for k, t in alone.traces.items()]
+            row["starts"][name] = {"course": [round(s, 5) for s in course(alone.traces)], "mpcd_mm": mm,
+                                   "proposals": len(alone.traces["pa"].proposals)}
+        print(json.dumps(row), file=out, flush=True)
 
 if __name__ == "__main__":
     main()
