@@ -14,10 +14,17 @@ import SimpleITK as sitk
 
 from .geometry.frames import centred_to_patient, grid_centre_ras
 
-__all__ = ["Volume", "SHRINK_SLAB_SLICES"]
+__all__ = ["Volume", "SHRINK_SLAB_SLICES", "index_points"]
 
 #: Slices of the shrunk grid that :meth:`Volume.shrunk` computes at a time.
 SHRINK_SLAB_SLICES = 32
+
+
+def index_points(kji: np.ndarray, ijk_to_frame: np.ndarray) -> np.ndarray:
+    """Points ``(N, 3)`` (mm) of array indices ``kji`` ``(N, 3)`` (``[k, j, i]`` order) under a 4x4 index -> frame map."""
+    kji = np.asarray(kji)
+    ijk1 = np.column_stack((kji[:, ::-1].astype(np.float64), np.ones(len(kji))))
+    return (ijk1 @ np.asarray(ijk_to_frame).T)[:, :3]
 
 
 @dataclass
@@ -60,9 +67,7 @@ class Volume:
 
     def centred_points(self, kji: np.ndarray) -> np.ndarray:
         """Voxel centres ``(N, 3)`` (centred frame, mm) of array indices ``kji`` ``(N, 3)`` (``[k, j, i]`` order)."""
-        kji = np.asarray(kji)
-        ijk1 = np.column_stack((kji[:, ::-1].astype(np.float64), np.ones(len(kji))))
-        return (ijk1 @ self.ijk_to_centred.T)[:, :3]
+        return index_points(kji, self.ijk_to_centred)
 
     @property
     def extent_mm(self) -> np.ndarray:

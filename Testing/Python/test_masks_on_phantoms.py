@@ -108,7 +108,7 @@ def test_the_working_grid_is_one_binshrink_of_the_whole_ct_made_slab_by_slab():
     import SimpleITK as sitk
 
     from geopose.cta.io import sitk_from_volume
-    from geopose.cta.masks import _back_to_full, _work_image
+    from geopose.cta.masks import _back_to_full
     from geopose.volume import SHRINK_SLAB_SLICES, Volume
 
     rng = np.random.default_rng(5)
@@ -117,7 +117,8 @@ def test_the_working_grid_is_one_binshrink_of_the_whole_ct_made_slab_by_slab():
                                   ((70, 20, 26), [4, 2, 1], np.int16), ((9, 8, 8), [1, 1, 1], np.float32)):
         volume = Volume(rng.normal(0.0, 600.0, shape).astype(dtype), affine)
         expected = sitk.BinShrink(sitk_from_volume(volume), factors)
-        work = _work_image(volume, factors)
+        shrunk = volume.shrunk(factors)
+        work = sitk_from_volume(shrunk)
         assert np.array_equal(sitk.GetArrayFromImage(work), sitk.GetArrayFromImage(expected)), (shape, factors)
         assert work.GetSize() == expected.GetSize() and work.GetPixelID() == expected.GetPixelID()
         for a, b in ((work.GetOrigin(), expected.GetOrigin()), (work.GetSpacing(), expected.GetSpacing()),
@@ -126,7 +127,7 @@ def test_the_working_grid_is_one_binshrink_of_the_whole_ct_made_slab_by_slab():
         mask = sitk.Cast(work > 0, sitk.sitkUInt8)
         reference = sitk.GetArrayFromImage(sitk.Resample(mask, sitk_from_volume(volume), sitk.Transform(),
                                                          sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8))
-        full = _back_to_full(mask, work, volume)
+        full = _back_to_full(shrunk.like(sitk.GetArrayFromImage(mask)), volume)
         assert full.shape == volume.array.shape and np.array_equal(full, reference)
         k, j, i = (n - n % f for n, f in zip(shape, factors[::-1]))
         assert not full[k:].any() and not full[:, j:].any() and not full[:, :, i:].any()

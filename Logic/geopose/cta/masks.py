@@ -61,20 +61,14 @@ def _work_factors(volume: Volume, work_spacing_mm: float) -> list[int]:
     return [max(1, round(work_spacing_mm / s)) for s in volume.spacing_mm]
 
 
-def _work_image(volume: Volume, factors: list[int], dtype: type | None = None) -> sitk.Image:
-    """``volume`` (as ``dtype`` when given) on its working grid, as SimpleITK image: ``sitk.BinShrink`` by ``factors``
-    (i, j, k) without a full-size copy (:meth:`Volume.shrunk`); the whole grid when every factor is 1."""
-    return sitk_from_volume(volume.shrunk(factors, dtype))
-
-
-def _back_to_full(mask: sitk.Image, work: sitk.Image, volume: Volume) -> np.ndarray:
-    """A uint8 mask computed on the working grid ``work`` (:func:`_work_image`), mapped onto ``volume``'s grid by
-    nearest neighbour."""
-    mask.CopyInformation(work)
-    if tuple(work.GetSize()) != tuple(volume.shape_ijk):
-        mask = sitk.Resample(mask, transform=sitk.Transform(), interpolator=sitk.sitkNearestNeighbor, defaultPixelValue=0,
-                             outputPixelType=sitk.sitkUInt8, **sitk_geometry(volume))
-    return sitk.GetArrayFromImage(mask).astype(np.uint8, copy=False)
+def _back_to_full(mask: Volume, volume: Volume) -> np.ndarray:
+    """A uint8 mask on a working grid (:meth:`Volume.shrunk` of ``volume``) mapped onto ``volume``'s grid by nearest
+    neighbour."""
+    if mask.array.shape == volume.array.shape:
+        return mask.array.astype(np.uint8, copy=False)
+    full = sitk.Resample(sitk_from_volume(mask), transform=sitk.Transform(), interpolator=sitk.sitkNearestNeighbor,
+                         defaultPixelValue=0, outputPixelType=sitk.sitkUInt8, **sitk_geometry(volume))
+    return sitk.GetArrayFromImage(full)
 
 
 def _largest_component(mask: sitk.Image) -> sitk.Image:
@@ -123,9 +117,9 @@ def cranium_mask_from_cta(volume: Volume, *, bone_hu: float = C.HU_BONE_MIN) -> 
     """
     if not np.any(volume.array > bone_hu):
         raise InputError(f"no voxel above {bone_hu:g} HU: the CTA shows no bone, so no cranium mask can be derived; supply a mask")
-    work = _work_image(volume, _work_factors(volume, WORK_SPACING_MM))
-    spacing = work.GetSpacing()
-    bone = sitk.Cast(work > bone_hu, sitk.sitkUInt8)
+    work = volume.shrunk(_work_factors(volume, WORK_SPACING_MM))
+    spacing = work.spacing_mm
+    bone = sitk.Cast(sitk_from_volume(work) > bone_hu, sitk.sitkUInt8)
     closed = sitk.BinaryMorphologicalClosing(bone, _radius_vox(CLOSING_RADIUS_MM, spacing), sitk.sitkBall)
     skull = sitk.GetArrayFromImage(_largest_component(closed)).astype(bool)
     axis = _superior_array_axis(volume)
@@ -133,7 +127,8 @@ def cranium_mask_from_cta(volume: Volume, *, bone_hu: float = C.HU_BONE_MIN) -> 
     line = [0, 0, 0]
     line[2 - axis] = _radius_vox(CLOSING_RADIUS_MM, spacing)[2 - axis]
     bridged = sitk.BinaryMorphologicalClosing(filled, line, sitk.sitkBox)
-    out = _back_to_full(_largest_component(sitk.BinaryFillhole(bridged, fullyConnected=False)), work, volume)
+    cranium = _largest_component(sitk.BinaryFillhole(bridged, fullyConnected=False))
+    out = _back_to_full(work.like(sitk.GetArrayFromImage(cranium)), volume)
     return volume.like(out, kind="cranium_mask", method="bone threshold + closing + largest component + axial fill")
 
 
@@ -158,11 +153,8 @@ def vessel_mask_from_cta(volume: Volume) -> Volume:
     """
     axis = _superior_array_axis(volume)
     factors = _work_factors(volume, VESSEL_WORK_SPACING_MM)
-    if max(factors) > 1:
-        work = _work_image(volume, factors, np.float32)
-        small, span_mm = _vessel_mask(sitk.GetArrayFromImage(work), work.GetSpacing(), axis)
-    else:
-        small, span_mm = _vessel_mask(np.asarray(volume.array, dtype=np.float32), volume.spacing_mm, axis)
+    work = volume.shrunk(factors, np.float32) if max(factors) > 1 else volume
+    small, span_mm = _vessel_mask(np.asarray(work.array, dtype=np.float32), work.spacing_mm, axis)
     method = "approximate: contrast HU range in the head and neck away from bone and marrow"
     if max(factors) > 1:
         method += f", on a {VESSEL_WORK_SPACING_MM:g} mm working grid"
@@ -170,7 +162,7 @@ def vessel_mask_from_cta(volume: Volume) -> Volume:
         return volume.like(np.zeros(volume.array.shape, np.uint8), kind="vessel_mask", contrast=False,
                            method=f"{method}: no contrast-filled vessel tree (the longest candidate spans {span_mm:.0f} mm "
                                   f"< {CONTRAST_SPAN_MM:g} mm; CT without contrast?), empty")
-    out = _back_to_full(sitk.GetImageFromArray(small), work, volume) if max(factors) > 1 else small
+    out = _back_to_full(work.like(small), volume)
     return volume.like(out, kind="vessel_mask", contrast=True, method=method)
 
 

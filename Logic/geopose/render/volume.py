@@ -23,7 +23,7 @@ from typing import Callable, Mapping, Union
 import numpy as np
 
 from ..images import block_mean
-from ..volume import Volume
+from ..volume import Volume, index_points
 from .density import DensityScale
 
 __all__ = ["CHANNELS", "RENDER_GRID_MM", "Level", "MaskSource", "RenderVolume", "coarse_mask", "footprint_mm", "render_factors"]
@@ -95,7 +95,7 @@ class RenderVolume:
     CTA grid; a channel without a mask is all zeros. ``finest_spacing_mm`` bounds the
     voxel size of the finest level from below (the CTA's own when None); ``scale``: the HU -> density
     map (default: the CTA's own, :class:`DensityScale`); ``centred_to_ras``: the render (world) frame, 4x4 to RAS
-    (default: the CTA's centred frame; the render grid of a finer CTA keeps that CTA's, :func:`render_grid`). The CTA
+    (default: the CTA's centred frame; the render grid of a finer CTA keeps that CTA's, :func:`render_factors`). The CTA
     array is read, never changed.
     """
 
@@ -122,9 +122,7 @@ class RenderVolume:
 
     def centred_points(self, kji: np.ndarray) -> np.ndarray:
         """Voxel centres ``(N, 3)`` (render frame, mm) of CTA array indices ``kji`` ``(N, 3)`` (``[k, j, i]`` order)."""
-        kji = np.asarray(kji)
-        ijk1 = np.column_stack((kji[:, ::-1].astype(np.float64), np.ones(len(kji))))
-        return (ijk1 @ self.ijk_to_world.T)[:, :3]
+        return index_points(kji, self.ijk_to_world)
 
     @property
     def channel_names(self) -> tuple[str, ...]:
