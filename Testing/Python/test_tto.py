@@ -130,3 +130,40 @@ def test_tto_from_the_truth_stays_with_the_opacified_vessels(unilateral_case):
     late = run_tto(renderer, tto_views(prep.views, {k: far @ rig[k] for k in rig}), TTOSchedule(iterations=5), rig=rig)
     assert late.vessel_selection is None or late.vessel_selection.iteration == TTOSchedule(iterations=5).coarse_steps(), \
         late.vessel_selection.summary()
+
+
+@pytest.mark.parametrize("total_steps, pct_start", [(25, 0.3), (12, 0.3), (1, 0.3), (7, 0.05)])
+def test_one_cycle_nadam_steps_as_torch_optim(total_steps, pct_start):
+    """The TTO's optimiser makes torch.optim's NAdam + OneCycleLR (cos, no momentum cycling) moves, bit for bit,
+    two groups of float64 parameters on a non-quadratic loss; its learning rates are the scheduler's."""
+    import torch
+
+    from geopose.register.nadam import OneCycleNAdam
+
+    rng = np.random.default_rng(total_steps)
+    start = [torch.as_tensor(rng.normal(size=3)), torch.as_tensor(rng.normal(size=(1, 4)))]
+    target = torch.as_tensor(rng.normal(size=7))
+    ours_params = [t.clone().requires_grad_(True) for t in start]
+    ref_params = [t.clone().requires_grad_(True) for t in start]
+    groups = lambda ps: [{"params": [ps[0]], "lr": 0.02}, {"params": [ps[1]], "lr": 4.0}]  # noqa: E731
+    kw = dict(total_steps=total_steps, pct_start=pct_start, div_factor=25.0, final_div_factor=1e4)
+    ours = OneCycleNAdam(groups(ours_params), **kw)
+    ref = torch.optim.NAdam(groups(ref_params), lr=0.02)
+    sched = torch.optim.lr_scheduler.OneCycleLR(ref, max_lr=[0.02, 4.0], cycle_momentum=False, **kw)
+
+    def loss(ps):
+        x = torch.cat([ps[0], ps[1].reshape(-1)])
+        return (torch.sin(x) * target + (x - target) ** 2).sum()
+
+    for _ in range(total_steps):
+        assert ours.learning_rates == [g["lr"] for g in ref.param_groups]
+        for opt, ps in ((ours, ours_params), (ref, ref_params)):
+            opt.zero_grad()
+            loss(ps).backward()
+            opt.step()
+        sched.step()
+        for a, b in zip(ours_params, ref_params):
+            assert torch.equal(a, b)
+    assert not torch.equal(ours_params[1], start[1])
+    with pytest.raises(ValueError, match="all were taken"):
+        ours.step()

@@ -10,7 +10,7 @@ Two parameterisations:
 * per view, the paper's: Euler ZYX (rad) and translation / 200 (mm), OneCycle max 1e-2
   (the published independent-views behaviour).
 
-NAdam with a OneCycle schedule. Coarse to fine: the first ``coarse_fraction`` of the steps
+NAdam with a OneCycle schedule (``nadam.py``). Coarse to fine: the first ``coarse_fraction`` of the steps
 render at half the image size (a coarser CTA level, a quarter of the rays), the rest at
 full size. The result is the pose of best full-size objective seen, the start included
 (per view for independent views, jointly for a patient pose; the paper's schedule keeps
@@ -36,6 +36,7 @@ from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
 from .axis_search import best_turn, valley_turn
 from .biplane import common_axis, patient_pose, view_poses
+from .nadam import OneCycleNAdam
 from ..options import Objective, TTOSchedule
 from .objective import view_terms
 from .opacified import OPACIFIED_NEAR_MM, VesselSelection, read_opacified, vessel_shift_mm
@@ -293,15 +294,11 @@ class TTORun:
             with torch.no_grad():
                 _, losses, current = self._evaluate("full")
             self._record_best(losses, current, 0)
-        self.optimiser = self.scheduler = None
+        self.optimiser = None
         if self.n > 0:
-            groups = self.params.groups(schedule)
-            self.optimiser = torch.optim.NAdam(groups, lr=groups[0]["lr"])
-            self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
-                self.optimiser, max_lr=[g["lr"] for g in groups], total_steps=self.n, pct_start=schedule.warmup_fraction,
-                div_factor=schedule.div_factor, final_div_factor=1.0 / (schedule.div_factor * schedule.final_lr_fraction),
-                cycle_momentum=False,
-            )
+            self.optimiser = OneCycleNAdam(
+                self.params.groups(schedule), total_steps=self.n, pct_start=schedule.warmup_fraction,
+                div_factor=schedule.div_factor, final_div_factor=1.0 / (schedule.div_factor * schedule.final_lr_fraction))
 
     def _evaluate(self, size: str) -> tuple:
         import torch
@@ -412,7 +409,7 @@ class TTORun:
                 total, losses, poses = self._evaluate(size)
             self.trace.append({
                 "iteration": it, "size": size, "loss": float(total.detach()),
-                "learning_rates": None if final else [g["lr"] for g in self.optimiser.param_groups],
+                "learning_rates": None if final else self.optimiser.learning_rates,
                 "views": {k: {"mncc": losses[k][1], "dice_loss": losses[k][2], "vessel_ncc": losses[k][3],
                               "pose": poses[k].tolist()} for k in self.names},
             })
@@ -422,7 +419,6 @@ class TTORun:
                 self.optimiser.zero_grad()
                 total.backward()
                 self.optimiser.step()
-                self.scheduler.step()
             self.it += 1
 
     def finish(self, **fields) -> TTOResult:
