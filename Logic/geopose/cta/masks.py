@@ -87,7 +87,8 @@ def _fill_slicewise(mask: np.ndarray, axis: int) -> np.ndarray:
     n, h, w = slices.shape
     background = np.zeros((2 * n - 1, h, w), dtype=np.uint8)
     background[::2] = ~slices
-    labels = sitk.GetArrayFromImage(sitk.ConnectedComponent(sitk.GetImageFromArray(background), False))[::2]
+    components = sitk.ConnectedComponent(sitk.GetImageFromArray(background), False)
+    labels = sitk.GetArrayViewFromImage(components)[::2]  # a view: no copy of the doubled grid
     hole = np.ones(int(labels.max()) + 1, dtype=bool)  # per label: a hole (not background, not at a border)
     hole[0] = False
     hole[np.concatenate([labels[:, 0].ravel(), labels[:, -1].ravel(), labels[:, :, 0].ravel(), labels[:, :, -1].ravel()])] = False
@@ -189,10 +190,13 @@ def _small_holes_slicewise(mask: np.ndarray, axis: int, max_voxels: float) -> np
     n, h, w = slices.shape
     background = np.zeros((2 * n - 1, h, w), dtype=np.uint8)
     background[::2] = ~slices
-    labels = sitk.GetArrayFromImage(sitk.ConnectedComponent(sitk.GetImageFromArray(background), False))
-    small = np.bincount(labels.ravel()) <= max_voxels  # the separators are label 0, which is never a hole
-    labels = labels[::2]
-    small[0] = False
+    components = sitk.ConnectedComponent(sitk.GetImageFromArray(background), False)
+    sizes = sitk.LabelShapeStatisticsImageFilter()  # voxel counts per label, without a copy of the doubled grid
+    sizes.Execute(components)
+    small = np.zeros(max(sizes.GetLabels(), default=0) + 1, dtype=bool)
+    for label in sizes.GetLabels():
+        small[label] = sizes.GetNumberOfPixels(label) <= max_voxels
+    labels = sitk.GetArrayViewFromImage(components)[::2]  # the separators are label 0, which is never a hole
     small[np.concatenate([labels[:, 0].ravel(), labels[:, -1].ravel(), labels[:, :, 0].ravel(), labels[:, :, -1].ravel()])] = False
     return np.moveaxis(small[labels], 0, axis)
 
