@@ -69,6 +69,11 @@ def test_a_mirror_test_fails_a_result_only_when_the_mirror_image_explains_the_ru
     assert not MirrorTest(-1.00, -1.00 - 0.5 * MIRROR_LOSS_MARGIN, plane).mirrored
     assert MirrorTest(-1.00, -1.00 - 2.0 * MIRROR_LOSS_MARGIN, plane).mirrored
     assert MirrorTest(-1.00, -0.90, plane).as_dict()["plane"]["symmetry_ncc"] == 0.95  # the record holds the plane
+    # within the margin either way the runs do not tell the sides apart, and the registration says so
+    assert MirrorTest(-1.00, -0.90, plane).note is None and MirrorTest(-1.00, -1.10, plane).note is None
+    alike = MirrorTest(-1.00, -1.00 + 0.6 * MIRROR_LOSS_MARGIN, plane).note
+    assert alike is not None and "left from its right" in alike and f"{0.6 * MIRROR_LOSS_MARGIN:+.3f}" in alike
+    assert MirrorTest(-1.00, -1.00 - 0.6 * MIRROR_LOSS_MARGIN, plane).note is not None
 
 
 def test_the_mirror_test_tells_a_one_sided_injection_from_its_mirror_image(unilateral_case):

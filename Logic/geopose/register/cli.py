@@ -190,10 +190,15 @@ def register_and_write(
 
 
 def print_summary(record: dict, out: Path) -> None:
+    """Per view the flag and why it is not "ok", the record's notes, the runtimes and the files written."""
     for key, v in record["views"].items():
         line = f"{key.upper():>3}: view {v['view_name']:<4} mNCC {v['final_mncc']:.3f}  silhouette Dice {v['silhouette_dice']:.3f}  quality {v['quality']['flag']}"
         if "truth" in v:
             line += f"  mPCD final {v['truth']['final']['mpcd_mm']:.2f} mm"
         print(line)
+        for reason in v["quality"]["reasons"]:
+            print(f"     - {reason}")
+    for note in record["notes"]:
+        print(f"note: {note}")
     print("runtimes (s): " + json.dumps({k: round(t, 3) for k, t in record["runtimes_s"].items()}))
     print(f"wrote {out / 'result.json'}, {out / 'overlay_pa.png'} and {out / 'overlay_lat.png'}")

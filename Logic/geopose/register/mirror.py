@@ -10,7 +10,8 @@ it as for the CTA as given. It runs a short TTO from that estimate, the vessels 
 read at its start (``opacified.py``) as the tournament reads them at that estimate, and both are judged
 by the objective on the vessels each read (``objective.py``, both views summed). The mirrored hypothesis
 explaining the runs better than the tournament's result by more than :data:`MIRROR_LOSS_MARGIN` fails
-the result. Both are weighed on the grid of the finest level the TTO rendered (``RenderVolume.coarsened``): a
+the result; within that margin either way the registration says the runs do not tell the sides apart
+(:data:`SIDES_ALIKE_NOTE`). Both are weighed on the grid of the finest level the TTO rendered (``RenderVolume.coarsened``): a
 0.5 mm CTA is mirrored and judged at the TTO's 1 mm, not resampled whole (26 -> 4 s at 512^3). It tells the sides
 only by the ways the two sides' arteries differ: where the other side's arteries fit the runs as well, it passes
 (experiments/mirror/mirror.md). Needs PyTorch (the TTO) and vessels in the CTA.
@@ -34,7 +35,7 @@ from .opacified import selection_judge
 from .progress import Monitor
 from .tournament import Tournament
 
-__all__ = ["MIRROR_TTO_ITERATIONS", "MIRROR_LOSS_MARGIN", "MirrorTest", "mirrored_volume", "mirror_test", "work_factors"]
+__all__ = ["MIRROR_TTO_ITERATIONS", "MIRROR_LOSS_MARGIN", "SIDES_ALIKE_NOTE", "MirrorTest", "mirrored_volume", "mirror_test", "work_factors"]
 
 #: TTO steps of the mirrored hypothesis, from the networks' estimate, and the share of them at half size (its start,
 #: common-axis searches and last pose are scored at full size).
@@ -46,6 +47,10 @@ MIRROR_COARSE_FRACTION: Final = 1.0
 #: the 20 correct CTAs of 6010-6029 -0.041 (6011, sides alike; -0.015 with a plane 0.5 deg apart)..+0.22. Where the
 #: sides fit alike the margin moves by about 0.04 with small changes, so the bar stands above that.
 MIRROR_LOSS_MARGIN: Final = 0.05
+#: Said (record, console, Slicer) when the margin lies within +-MIRROR_LOSS_MARGIN: the runs do not tell the sides apart.
+SIDES_ALIKE_NOTE: Final = ("the runs do not tell the CTA's left from its right: the CTA mirrored across the head's midplane "
+                           "explains them about as well (objective margin {margin:+.3f}, within +-{limit:g}); check the "
+                           "CTA's left-right orientation (its header, an R/L marker) before relying on the side of an overlay")
 
 
 @dataclass(frozen=True)
@@ -66,6 +71,13 @@ class MirrorTest:
     @property
     def mirrored(self) -> bool:
         return self.margin < -MIRROR_LOSS_MARGIN
+
+    @property
+    def note(self) -> str | None:
+        """:data:`SIDES_ALIKE_NOTE` where neither side explains the runs better by more than the margin, else None."""
+        if abs(self.margin) > MIRROR_LOSS_MARGIN:
+            return None
+        return SIDES_ALIKE_NOTE.format(margin=self.margin, limit=MIRROR_LOSS_MARGIN)
 
     def as_dict(self) -> dict:
         return {"loss": self.loss, "mirrored_loss": self.mirrored_loss, "margin": self.margin, "mirrored": self.mirrored,

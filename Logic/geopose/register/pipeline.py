@@ -126,6 +126,7 @@ def register_case(
         with clock("mirror", engine):
             mirror = mirror_test(renderer, case.views, tournament, X_learned, rig,
                                  options.objective, engine.device, monitor)
+        notes += [mirror.note] if mirror.note else []
     registration = Registration(
         "biplane-rigid", rig, patient_pose=kept.patient_pose, starts=dict(starts.objectives), chosen_start=kept.start,
         tto_runs=dict(tournament.runs) if tournament else {}, tto_objective=dict(tournament.objectives) if tournament else {},
