@@ -167,3 +167,18 @@ def test_one_cycle_nadam_steps_as_torch_optim(total_steps, pct_start):
     assert not torch.equal(ours_params[1], start[1])
     with pytest.raises(ValueError, match="all were taken"):
         ours.step()
+
+
+def test_one_cycle_nadam_takes_a_warm_up_of_one_step():
+    """Where ``OneCycleLR`` divides by zero (its warm-up ends at step 0: one step, all of it warm-up), the schedule
+    starts at its peak and the step is taken."""
+    import torch
+
+    from geopose.register.nadam import OneCycleNAdam
+
+    w = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    opt = OneCycleNAdam([{"params": [w], "lr": 0.02}], total_steps=1, pct_start=1.0, div_factor=25.0, final_div_factor=1e4)
+    assert opt.learning_rates == [pytest.approx(0.02)]
+    (w - 1.0).square().sum().backward()
+    opt.step()
+    assert torch.all(w > 0)

@@ -15,7 +15,8 @@ __all__ = ["OneCycleNAdam"]
 
 
 class OneCycleNAdam:
-    """NAdam over ``groups`` (``[{"params": [tensor, ...], "lr": peak learning rate}, ...]``), each group's
+    """NAdam over ``groups`` (``[{"params": [tensor, ...], "lr": peak learning rate}, ...]``, each rate in its
+    parameters' own units: rad for a rotation, mm for a shift), each group's
     learning rate rising from ``peak / div_factor`` to its peak over the first ``pct_start`` of
     ``total_steps`` and falling to ``peak / div_factor / final_div_factor`` by the last (cosine).
     :attr:`learning_rates` are those the next :meth:`step` uses."""
@@ -46,17 +47,18 @@ class OneCycleNAdam:
         return [self._lr(g["lrs"], self.steps_taken) for g in self.groups]
 
     def _lr(self, lrs: tuple[float, float, float], step: int) -> float:
-        """OneCycleLR's cosine anneal: ``lrs`` = (start, peak, end)."""
-        start_step = 0.0
-        for i, end_step in enumerate(self.phase_ends):
-            if step <= end_step or i == len(self.phase_ends) - 1:
-                pct = (step - start_step) / (end_step - start_step)
-                begin, end = lrs[i], lrs[i + 1]
-                return end + (begin - end) / 2.0 * (math.cos(math.pi * pct) + 1)
-            start_step = end_step
-        raise AssertionError("unreachable")
+        """OneCycleLR's cosine anneal at ``step``: ``lrs`` = (start, peak, end). A phase of no length counts as
+        done (where ``OneCycleLR`` divides by zero)."""
+        warm_end, last = self.phase_ends
+        if step <= warm_end:
+            begin, end, start_step, end_step = lrs[0], lrs[1], 0.0, warm_end
+        else:
+            begin, end, start_step, end_step = lrs[1], lrs[2], warm_end, last
+        pct = (step - start_step) / (end_step - start_step) if end_step != start_step else 1.0
+        return end + (begin - end) / 2.0 * (math.cos(math.pi * pct) + 1)
 
     def zero_grad(self) -> None:
+        """Drop every parameter's gradient (as ``torch.optim``'s ``zero_grad``)."""
         for g in self.groups:
             for p in g["params"]:
                 p.grad = None
