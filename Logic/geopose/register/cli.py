@@ -190,7 +190,8 @@ def register_and_write(
 
 
 def print_summary(record: dict, out: Path) -> None:
-    """Per view the flag and why it is not "ok", the record's notes, the runtimes and the files written."""
+    """Per view the flag and why it is not "ok", the record's notes not said there, the runtimes and the files written."""
+    said = set()
     for key, v in record["views"].items():
         line = f"{key.upper():>3}: view {v['view_name']:<4} mNCC {v['final_mncc']:.3f}  silhouette Dice {v['silhouette_dice']:.3f}  quality {v['quality']['flag']}"
         if "truth" in v:
@@ -198,7 +199,9 @@ def print_summary(record: dict, out: Path) -> None:
         print(line)
         for reason in v["quality"]["reasons"]:
             print(f"     - {reason}")
+        said.update(v["quality"]["reasons"])
     for note in record["notes"]:
-        print(f"note: {note}")
+        if note not in said:
+            print(f"note: {note}")
     print("runtimes (s): " + json.dumps({k: round(t, 3) for k, t in record["runtimes_s"].items()}))
     print(f"wrote {out / 'result.json'}, {out / 'overlay_pa.png'} and {out / 'overlay_lat.png'}")
