@@ -221,10 +221,10 @@ def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True
             "axis; check the header's dimensions and spacing (or give the complete volume)"
         )
     a = volume.array
-    finite = np.isfinite(a)
-    if not finite.all():
-        raise InputError(f"{name} has {int((~finite).sum())} NaN/infinite voxels: replace them (e.g. with -1024 HU) before loading")
-    lo, hi = float(a.min()), float(a.max())
+    lo, hi = float(a.min()), float(a.max())  # NaN or infinite when any voxel is: no full-size temporary otherwise
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        bad = sum(int(np.count_nonzero(~np.isfinite(slab))) for slab in _slabs(a))
+        raise InputError(f"{name} has {bad} NaN/infinite voxels: replace them (e.g. with -1024 HU) before loading")
     if lo == hi:
         if not check_hu and lo == 0:
             raise InputError(f"{name} is empty (0 everywhere): give a mask with the structure labelled, or leave it out")
@@ -250,15 +250,23 @@ def validate_cta(volume: Volume, *, name: str = "the CTA", check_hu: bool = True
     _check_hu_distribution(a, lo, name)
 
 
+def _slabs(a: np.ndarray, slices: int = 32):
+    """``a`` in slabs of ``slices`` along its first axis (counts over them need no full-size temporaries)."""
+    return (a[k:k + slices] for k in range(0, a.shape[0], slices))
+
+
 def _check_hu_distribution(a: np.ndarray, lo: float, name: str) -> None:
     """Refuse a volume whose voxels lie outside :data:`~geopose.limits.CTA_PLAUSIBLE_HU` in more than
     :data:`~geopose.limits.CTA_MAX_IMPLAUSIBLE_SHARE` of the volume. Voxels at the minimum below that range, when
     they are at least 1 % of the volume, are padding (outside the scan circle, e.g. -3024 HU) and not counted."""
     plo, phi = L.CTA_PLAUSIBLE_HU
-    padding = int(np.count_nonzero(a == lo)) if lo < plo else 0
-    padding = padding if padding >= 0.01 * a.size else 0
-    below = int(np.count_nonzero(a < plo)) - padding
-    above = int(np.count_nonzero(a > phi))
+    at_lo = below = above = 0
+    for slab in _slabs(a):
+        at_lo += int(np.count_nonzero(slab == lo)) if lo < plo else 0
+        below += int(np.count_nonzero(slab < plo))
+        above += int(np.count_nonzero(slab > phi))
+    padding = at_lo if at_lo >= 0.01 * a.size else 0
+    below -= padding
     counted = a.size - padding
     share = (below + above) / max(counted, 1)
     if share > L.CTA_MAX_IMPLAUSIBLE_SHARE:
