@@ -215,6 +215,29 @@ def test_lps_header_becomes_ras_affine(tmp_path: Path):
     assert image.GetPixel(2, 3, 1) == pytest.approx(vol.array[1, 3, 2])
 
 
+def test_a_float32_file_is_loaded_without_copying_its_voxels(tmp_path: Path):
+    """A float32 CTA's voxels stay in SimpleITK's buffer (no 512 MB copy at 512^3): the array's base keeps the image
+    alive after everything else is gone, the values are SimpleITK's, and it is writable as a copy would be. Another
+    voxel type is converted to float32."""
+    import gc
+
+    values = np.linspace(-1000, 1000, 12 * 30 * 44, dtype=np.float32).reshape(12, 30, 44)
+    image = sitk.GetImageFromArray(values)
+    image.SetSpacing((2.0, 2.0, 2.0))
+    sitk.WriteImage(image, str(tmp_path / "f.nii.gz"))
+    sitk.WriteImage(sitk.Cast(image, sitk.sitkInt16), str(tmp_path / "i.nii.gz"))
+    array = load_cta(tmp_path / "f.nii.gz").array
+    assert array.base is not None and isinstance(getattr(array.base, "image", None), sitk.Image)
+    del image
+    gc.collect()
+    np.testing.assert_array_equal(array, values)
+    array[0, 0, 0] = 7.0
+    assert array[0, 0, 0] == 7.0
+    converted = load_cta(tmp_path / "i.nii.gz").array
+    assert converted.dtype == np.float32 and converted.base is None
+    np.testing.assert_array_equal(converted, values.astype(np.int16).astype(np.float32))
+
+
 @pytest.mark.parametrize("name", ["v.nii.gz", "v.nii", "v.nrrd", "v.mha"])
 def test_save_load_round_trip_oblique_anisotropic(tmp_path: Path, name: str):
     vol = _oblique_volume()

@@ -40,14 +40,26 @@ CTA_EXTENSIONS = IMAGE_EXTENSIONS
 _ORTHONORMAL_TOL = 1e-4
 
 
+class _ImageVoxels:
+    """A SimpleITK image's voxel buffer as numpy sees it (``numpy.asarray`` of this), the image kept alive for as long
+    as an array uses the buffer: no copy of the voxels (512 MB for a float32 512^3 CTA)."""
+
+    def __init__(self, image: sitk.Image) -> None:
+        self.image = image  # sole owner (GetArrayViewFromImage makes the buffer unique): writable, as a copy would be
+        interface = dict(sitk.GetArrayViewFromImage(image).__array_interface__)
+        interface["data"] = (interface["data"][0], False)
+        self.__array_interface__ = interface
+
+
 def volume_from_sitk(image: sitk.Image, metadata: dict | None = None) -> Volume:
-    """A SimpleITK 3D scalar image -> :class:`Volume` (float32 voxels, ijk->RAS affine)."""
+    """A SimpleITK 3D scalar image -> :class:`Volume` (float32 voxels, ijk->RAS affine). A float32 image's
+    voxels are shared with the Volume (the image is the array's base), any other type is converted."""
     direction = np.asarray(image.GetDirection(), dtype=float).reshape(3, 3)
     lin_lps = direction @ np.diag(image.GetSpacing())
     ijk_to_lps = np.eye(4)
     ijk_to_lps[:3, :3] = lin_lps
     ijk_to_lps[:3, 3] = image.GetOrigin()
-    array = sitk.GetArrayFromImage(image).astype(np.float32, copy=False)
+    array = np.asarray(_ImageVoxels(image)).astype(np.float32, copy=False)
     return Volume(array, RAS_TO_LPS @ ijk_to_lps, dict(metadata or {}))
 
 
