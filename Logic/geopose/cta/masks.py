@@ -77,21 +77,29 @@ def _largest_component(mask: sitk.Image) -> sitk.Image:
     return sitk.Cast(relabelled == 1, sitk.sitkUInt8)
 
 
-def _fill_slicewise(mask: np.ndarray, axis: int) -> np.ndarray:
-    """Fill 2D holes in every slice of ``mask`` ([k, j, i] array) taken across ``axis``.
-
-    One connected-component pass over the slices stacked with an empty-free separator
-    between them (face connectivity, so no background region crosses slices): background
-    regions that do not touch a slice's border are holes."""
+def _slice_background(mask: np.ndarray, axis: int) -> tuple[np.ndarray, sitk.Image, np.ndarray, np.ndarray]:
+    """The background regions of every 2D slice of ``mask`` ([k, j, i] array) taken across ``axis``, in one
+    connected-component pass over the slices stacked with an empty separator between them (face connectivity, so no
+    region crosses slices). Returns the slices (bool, slice axis first), the component image (it owns the labels'
+    memory: keep it while they are used), the labels of the slices (a view, separators left out; 0 = not background)
+    and the labels that touch a slice's border (not holes)."""
     slices = np.moveaxis(np.asarray(mask, dtype=bool), axis, 0)
     n, h, w = slices.shape
     background = np.zeros((2 * n - 1, h, w), dtype=np.uint8)
     background[::2] = ~slices
     components = sitk.ConnectedComponent(sitk.GetImageFromArray(background), False)
     labels = sitk.GetArrayViewFromImage(components)[::2]  # a view: no copy of the doubled grid
+    border = np.concatenate([labels[:, 0].ravel(), labels[:, -1].ravel(), labels[:, :, 0].ravel(), labels[:, :, -1].ravel()])
+    return slices, components, labels, border
+
+
+def _fill_slicewise(mask: np.ndarray, axis: int) -> np.ndarray:
+    """Fill 2D holes in every slice of ``mask`` ([k, j, i] array) taken across ``axis``: background regions that do
+    not touch a slice's border (:func:`_slice_background`)."""
+    slices, components, labels, border = _slice_background(mask, axis)
     hole = np.ones(int(labels.max()) + 1, dtype=bool)  # per label: a hole (not background, not at a border)
     hole[0] = False
-    hole[np.concatenate([labels[:, 0].ravel(), labels[:, -1].ravel(), labels[:, :, 0].ravel(), labels[:, :, -1].ravel()])] = False
+    hole[border] = False
     holes = hole[labels]
     return np.moveaxis(slices | holes, 0, axis).astype(mask.dtype)
 
@@ -186,18 +194,13 @@ def _eroded_by_ball(mask: np.ndarray, radius_vox: list[int]) -> np.ndarray:
 def _small_holes_slicewise(mask: np.ndarray, axis: int, max_voxels: float) -> np.ndarray:
     """The 2D holes of at most ``max_voxels`` voxels in every slice of ``mask`` ([k, j, i] bool) taken
     across ``axis`` (as :func:`_fill_slicewise`, holes only, size-limited)."""
-    slices = np.moveaxis(np.asarray(mask, dtype=bool), axis, 0)
-    n, h, w = slices.shape
-    background = np.zeros((2 * n - 1, h, w), dtype=np.uint8)
-    background[::2] = ~slices
-    components = sitk.ConnectedComponent(sitk.GetImageFromArray(background), False)
+    _, components, labels, border = _slice_background(mask, axis)
     sizes = sitk.LabelShapeStatisticsImageFilter()  # voxel counts per label, without a copy of the doubled grid
     sizes.Execute(components)
-    small = np.zeros(max(sizes.GetLabels(), default=0) + 1, dtype=bool)
+    small = np.zeros(max(sizes.GetLabels(), default=0) + 1, dtype=bool)  # label 0 (not background) is never a hole
     for label in sizes.GetLabels():
         small[label] = sizes.GetNumberOfPixels(label) <= max_voxels
-    labels = sitk.GetArrayViewFromImage(components)[::2]  # the separators are label 0, which is never a hole
-    small[np.concatenate([labels[:, 0].ravel(), labels[:, -1].ravel(), labels[:, :, 0].ravel(), labels[:, :, -1].ravel()])] = False
+    small[border] = False
     return np.moveaxis(small[labels], 0, axis)
 
 
