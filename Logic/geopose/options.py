@@ -169,8 +169,10 @@ class TTOSchedule(_Group):
     #: On validation phantoms 6010-6029 (2 mm, default path) the tournament's winner was the DICOM angles'
     #: start or the best other by its objective in 19 of 20; trying those two instead of all five distinct
     #: starts: TTO 14.3 -> 10.6 s, carotid mPCD 2.33 -> 2.20 mm (docs/pipeline_benchmark.md, 2026-12-04).
+    #: The networks' estimate runs too when it is not among them (``tournament.tried_starts``): on validation phantoms
+    #: 6077 and 6088, where a raw Init start scored better, 38.2 / 5.7 -> 1.3 / 2.9 mm and 2.6 / 2.4 -> 1.5 / 2.1 mm.
     starts: int = setting(2, "candidate starts that run the coarse steps: the DICOM angles' and the best others by "
-                          "their objective", bounds=(1, 100))
+                          "their objective (and the networks' estimate)", bounds=(1, 100))
     finalists: int = setting(2, "starts that run on after the coarse steps", bounds=(1, 100))
     #: On validation phantoms 6010-6029 (2 mm, default path) the gap between the two finalists after the coarse steps,
     #: judged by one objective, closed by at most 0.1 over the remaining steps (final gaps 0.1-0.92, one pair converged

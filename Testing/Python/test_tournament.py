@@ -16,7 +16,7 @@ def test_the_dicom_angles_result_is_kept_on_a_tie():
 
 def test_the_tto_tries_the_dicom_angles_and_the_best_other_starts():
     """``tried_starts`` keeps the DICOM angles' start whatever its objective, then the others of lowest
-    objective, a repeated pose once, in the given order."""
+    objective and the networks' estimate, a repeated pose once, in the given order."""
     import numpy as np
 
     from geopose.register.starts import DICOM_START, Starts
@@ -34,6 +34,11 @@ def test_the_tto_tries_the_dicom_angles_and_the_best_other_starts():
     assert list(tried_starts(starts, 3)) == [DICOM_START, "Init", "Refine + search"]
     assert list(tried_starts(starts, 1)) == [DICOM_START]
     assert list(tried_starts(starts, 100)) == list(starts.distinct()) == [DICOM_START, "Init", "Init PA", "Refine + search"]
+    # the networks' estimate runs whatever its objective; one at a repeated pose runs under the first name of that pose
+    assert list(tried_starts(starts, 2, "Init PA")) == [DICOM_START, "Init PA", "Refine + search"]
+    assert list(tried_starts(starts, 2, "Refine + search")) == [DICOM_START, "Refine + search"]
+    assert list(tried_starts(starts, 1, "Init LAT")) == [DICOM_START, "Init"]
+    assert list(tried_starts(Starts({DICOM_START: moved(0)}, {DICOM_START: -0.1}), 2, "Refine + search")) == [DICOM_START]
 
 
 def test_the_opacified_vessels_are_read_at_the_networks_estimate_before_any_step(unilateral_case):
@@ -98,3 +103,31 @@ def test_a_finalist_far_behind_after_the_coarse_steps_stops_there(unilateral_cas
     both = optimise_from_starts(renderer, views, starts, rig, TTOSchedule(iterations=5, stop_behind=0.0), keep=("DICOM angles",),
                                 read_at=("estimate", X))
     assert all(r.stopped_at is None and len(r.trace) == 6 for r in both.values())
+
+
+def test_starts_are_ranked_after_the_coarse_steps_by_one_objective(unilateral_case):
+    """With more starts than finalists, the runs are ranked after the coarse steps by the objective on the opacified
+    vessels (read at the networks' estimate), also a run far from it that renders every vessel: its ranking loss is
+    not its own loss there, and the estimate's run (at the truth) ranks first and goes on."""
+    from register_helpers import _prepared
+
+    from geopose.geometry import invert
+    from geopose.register import TTOSchedule
+    from geopose.register.biplane import nominal_poses
+    from geopose.register.tournament import optimise_from_starts
+    from geopose.register.tto import tto_views
+
+    truth, runs, prep, renderer = _prepared(unilateral_case)
+    rig = nominal_poses(runs)
+    X = truth.poses["pa"] @ invert(rig["pa"])
+    off, far = X.copy(), X.copy()
+    off[:3, 3] += [12.0, 0.0, 16.0]
+    far[:3, 3] += [-20.0, 10.0, 0.0]
+    schedule = TTOSchedule(iterations=5, stop_behind=0.0)
+    out = optimise_from_starts(renderer, tto_views(prep.views, truth.poses), {"estimate": X, "DICOM angles": off, "far": far},
+                               rig, schedule, keep=("DICOM angles",), read_at=("estimate", X))
+    coarse = schedule.coarse_steps()
+    assert out["far"].vessel_selection is None and out["estimate"].vessel_selection is not None
+    assert abs(out["far"].ranking_loss - out["far"].trace[coarse]["loss"]) > 1e-3
+    assert out["estimate"].ranking_loss < out["far"].ranking_loss
+    assert out["estimate"].stopped_at is None and out["far"].stopped_at == coarse + 1

@@ -27,7 +27,7 @@ from ..options import Objective, TTOSchedule
 from .objective import pair_objective
 from .opacified import VesselSelection, selection_judge
 from .progress import Monitor
-from .starts import DICOM_START, Starts
+from .starts import DICOM_START, Starts, same_pose
 from .tto import TTOImages, TTOResult, TTORun, TTOView, restrict_to_opacified, tto_views
 
 __all__ = ["OBJECTIVE_TIE", "Tournament", "chosen_result", "optimise_from_starts", "run_tournament", "tried_starts"]
@@ -86,7 +86,8 @@ def optimise_from_starts(
             runs[name].advance(first.coarse + 1, monitor.part(i, parts, f"from {name}"))
         there = {name: runs[name].trace[first.coarse]["loss"] for name in names}
         if len(names) > n_final:
-            ranking = there
+            # ranked by one objective: a run near the estimate renders the opacified vessels alone, a far one all
+            ranking = _judged(runs, names, images) if read else there
             ranked = sorted((k for k in names if k not in keep), key=ranking.get)
             finalists = list(keep) + ranked[:n_final - len(keep)]
         if objective.read_opacified and not read:
@@ -105,13 +106,18 @@ def optimise_from_starts(
     return out
 
 
+def _judged(runs: Mapping[str, TTORun], names: Sequence[str], images: TTOImages) -> dict[str, float]:
+    """Per run, the best objective of its full-size poses so far judged by one objective: the images of a run that
+    holds the opacified vessels (else ``images``), as the finalists are judged at the end."""
+    judge = next((runs[k].images for k in names if runs[k].vessel_selection), images)
+    return {k: runs[k].best_loss_by(judge) for k in names}
+
+
 def _behind(runs: Mapping[str, TTORun], finalists: Sequence[str], images: TTOImages) -> dict[str, float]:
-    """Per finalist, how far its best full-size pose so far lies behind the best of them, judged by one objective:
-    the images of the run that holds the opacified vessels (else ``images``), as the finalists are judged at the end."""
+    """Per finalist, how far its best full-size pose so far lies behind the best of them (:func:`_judged`)."""
     if len(finalists) < 2:
         return {k: 0.0 for k in finalists}
-    judge = next((runs[k].images for k in finalists if runs[k].vessel_selection), images)
-    judged = {k: runs[k].best_loss_by(judge) for k in finalists}
+    judged = _judged(runs, finalists, images)
     lead = min(judged.values())
     return {k: v - lead for k, v in judged.items()}
 
@@ -132,22 +138,27 @@ class Tournament:
         return self.runs[self.chosen]
 
 
-def tried_starts(starts: Starts, count: int) -> dict[str, np.ndarray]:
-    """The distinct starts (``Starts.distinct``) the TTO runs: the DICOM angles' and the ``count - 1`` others
-    of lowest objective, in their given order."""
+def tried_starts(starts: Starts, count: int, estimate: str | None = None) -> dict[str, np.ndarray]:
+    """The distinct starts (``Starts.distinct``) the TTO runs: the DICOM angles', the ``count - 1`` others of lowest
+    objective and the networks' ``estimate`` (a start's name; ignored when not a candidate) when not among them, in
+    their given order. The opacified vessels are read at the estimate; on a computed vessel mask a raw Init start can
+    score better and lie degrees further off (benchmark phantoms 5022, 5033, 5041, session 38)."""
     distinct = starts.distinct()
     others = sorted((k for k in distinct if k != DICOM_START), key=starts.objectives.get)[:max(count - 1, 0)]
+    if estimate in starts.poses:  # under the name of the first start at its pose
+        others.append(next(k for k, X in distinct.items() if same_pose(X, starts.poses[estimate])))
     return {k: X for k, X in distinct.items() if k == DICOM_START or k in others}
 
 
 def run_tournament(renderer: Renderer, tto_renderer: TorchRenderer, views: Mapping[str, PreparedDSA], starts: Starts,
                    rig: Mapping[str, np.ndarray], schedule: TTOSchedule, objective: Objective, monitor: Monitor, *,
                    estimate: tuple[str, np.ndarray] | None = None) -> Tournament:
-    """The TTO (``schedule``, ``objective``) from the starts :func:`tried_starts` picks (``schedule.starts``), the
-    DICOM angles' among the finalists, the opacified vessels read at the networks' ``estimate`` (name, patient pose);
-    the finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
-    runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), tried_starts(starts, schedule.starts),
-                                rig, schedule, keep=(DICOM_START,), objective=objective, read_at=estimate, monitor=monitor)
+    """The TTO (``schedule``, ``objective``) from the starts :func:`tried_starts` picks (``schedule.starts`` and the
+    networks' ``estimate``, a name and a patient pose, where the opacified vessels are read), the DICOM angles' among
+    the finalists; the finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
+    tried = tried_starts(starts, schedule.starts, None if estimate is None else estimate[0])
+    runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), tried, rig, schedule,
+                                keep=(DICOM_START,), objective=objective, read_at=estimate, monitor=monitor)
     selection = next((r.vessel_selection for r in runs.values() if r.vessel_selection), None)
     judge = selection_judge(renderer, selection)
     objectives = {name: pair_objective(judge, run.poses, views, objective) for name, run in runs.items()
