@@ -1,11 +1,11 @@
 """The test-time optimisation of one patient pose from several starts, one result kept (ours).
 
-The DICOM angles' start and the best other distinct candidate starts by their objective (``starts.py``;
-``options.TTOSchedule.starts`` in all) run the TTO's coarse steps. The vessels the runs show opacified
-are read at the networks' estimate before any step, and the runs that start near it compare those alone
-(``opacified.py``; read after the coarse steps at the pose of the start of lowest loss when too few pass
-there); the DICOM angles' run and the best other by the loss after the coarse steps
-(``options.TTOSchedule.finalists`` in all) are the finalists. Judged there by one objective, a finalist
+The DICOM angles' start, the best other distinct candidate starts by their objective (``starts.py``;
+``options.TTOSchedule.starts`` in all) and the networks' estimate run the TTO's coarse steps. The vessels the
+runs show opacified are read at the networks' estimate before any step, and the runs that start near it compare
+those alone (``opacified.py``; read after the coarse steps at the pose of the start of lowest loss when too few
+pass there); the DICOM angles' run and the best other after the coarse steps, all judged by one objective
+(``options.TTOSchedule.finalists`` in all), are the finalists. Judged there by one objective, a finalist
 more than ``TTOSchedule.stop_behind`` behind the leader stops (a gap closed by at most 0.1 in the
 remaining steps on validation phantoms); the others run to the end and are compared by that objective
 (``objective.py``; the opacified vessels alone, when they were read): the lowest wins, the DICOM
