@@ -121,8 +121,7 @@ def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], tournament
     mirrored = mirrored_volume(work, plane)
     result = test_time_optimise(TorchRenderer(mirrored, device), tto_views(views, view_poses(shift @ estimate, rig)),
                                 TTOSchedule(MIRROR_TTO_ITERATIONS, coarse_fraction=MIRROR_COARSE_FRACTION,
-                                            axis_search_at=MIRROR_AXIS_SEARCH_AT), objective=objective,
-                                rig=rig)
+                                            axis_search_at=MIRROR_AXIS_SEARCH_AT), objective=objective, rig=rig)
     judge = selection_judge(make_renderer(mirrored, renderer.engine, device), result.vessel_selection)
     return MirrorTest(loss, pair_objective(judge, result.poses, views, objective), plane)
 

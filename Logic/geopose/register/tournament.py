@@ -4,8 +4,8 @@ The DICOM angles' start, the best other distinct candidate starts by their objec
 ``options.TTOSchedule.starts`` in all) and the networks' estimate run the TTO's coarse steps. The vessels the
 runs show opacified are read at the networks' estimate before any step, and the runs that start near it compare
 those alone (``opacified.py``; read after the coarse steps at the pose of the start of lowest loss when too few
-pass there); the DICOM angles' run and the best other after the coarse steps, all judged by one objective
-(``options.TTOSchedule.finalists`` in all), are the finalists. Judged there by one objective, a finalist
+pass there); the DICOM angles' run and the best other after the coarse steps (``options.TTOSchedule.finalists``
+in all) are the finalists. Judged there by one objective (the ranking too), a finalist
 more than ``TTOSchedule.stop_behind`` behind the leader stops (a gap closed by at most 0.1 in the
 remaining steps on validation phantoms); the others run to the end and are compared by that objective
 (``objective.py``; the opacified vessels alone, when they were read): the lowest wins, the DICOM
@@ -142,7 +142,7 @@ def tried_starts(starts: Starts, count: int, estimate: str | None = None) -> dic
     """The distinct starts (``Starts.distinct``) the TTO runs: the DICOM angles', the ``count - 1`` others of lowest
     objective and the networks' ``estimate`` (a start's name; ignored when not a candidate) when not among them, in
     their given order. The opacified vessels are read at the estimate; on a computed vessel mask a raw Init start can
-    score better and lie degrees further off (benchmark phantoms 5022, 5033, 5041, session 38)."""
+    score better and lie degrees further off (5022, 5033, 5041 of the session-38 benchmark; validation 6077, 6088)."""
     distinct = starts.distinct()
     others = sorted((k for k in distinct if k != DICOM_START), key=starts.objectives.get)[:max(count - 1, 0)]
     if estimate in starts.poses:  # under the name of the first start at its pose
