@@ -15,7 +15,8 @@ its own module:
    its result is the networks' estimate;
 6. ``starts.candidate_starts`` and ``tournament.run_tournament``: the test-time optimisation
    (PyTorch; skipped with a note without it) from every distinct candidate start, the result of
-   lowest objective kept, the DICOM angles' on a tie;
+   lowest objective kept, the DICOM angles' on a tie; ``continuation.continued``: a result that turned far from
+   the networks' estimate optimised once more from where it ended;
 7. ``trust.kept_result``: the networks' estimate is kept where the TTO's result is not to be
    trusted (on a given segmentation its vessel NCC per view, ``evidence.view_evidence``, is read for
    that), and without vessel evidence the move from the DICOM angles is bounded;
@@ -43,6 +44,7 @@ from .calibration import calibrate
 from .engine import NO_TORCH_TTO_NOTE, StageClock, start_case
 from .evidence import view_evidence
 from .init import biplane_init
+from .continuation import continued
 from .mirror import mirror_test
 from .progress import CancelCheck, Monitor, ProgressCallback
 from .published import register_published
@@ -114,6 +116,8 @@ def register_case(
         elif options.tto.iterations > 0:
             tournament = run_tournament(renderer, engine.tto_renderer, case.views, starts, rig, options.tto, options.objective,
                                         monitor, estimate=(estimate, X_learned))
+            tournament = continued(renderer, engine.tto_renderer, case.views, tournament, X_learned, rig, options.tto,
+                                   options.objective, monitor)
             if segmentation is not None:  # the result's evidence, (pose, terms) per view: trust and scoring read it
                 measured = {key: (pose, view_evidence(renderer, pose, case.views[key], options.objective))
                             for key, pose in tournament.result.poses.items()}
