@@ -11,7 +11,7 @@ from geopose.geometry.poses import pose_from_params
 from geopose.options import Objective
 from geopose.register import TTOSchedule, test_time_optimise as run_tto
 from geopose.register.biplane import nominal_poses
-from geopose.register.continuation import CONTINUE_TURN_DEG, CONTINUED_START, continued, turn_deg
+from geopose.register.continuation import CONTINUED_START, continued, turn_deg
 from geopose.register.objective import pair_objective
 from geopose.register.opacified import selection_judge
 from geopose.register.tournament import Tournament
@@ -35,22 +35,25 @@ def test_the_turn_between_two_poses_is_their_rotation_alone():
     assert turn_deg(moved, X) == pytest.approx(0.0, abs=1e-6)
 
 
-def test_a_result_that_turned_far_runs_on_and_the_lowest_objective_of_one_judge_wins(unilateral_case):
-    """A short TTO started 12 deg off the truth ends on the way. Its result within CONTINUE_TURN_DEG of the estimate is
-    left as it is; 10 deg away it runs on: the continued run ends nearer the truth, and it and the first run are judged
-    by the vessels the continued run read, the lowest chosen."""
+def test_a_result_that_turned_far_runs_on_and_the_lowest_objective_of_one_judge_wins(unilateral_case, monkeypatch):
+    """A short TTO started 12 deg off the truth ends on the way. A result that turned at most CONTINUE_TURN_DEG from
+    its start is left as it is; one that turned more runs on: the continued run ends nearer the truth, and it and the
+    first run are judged by the vessels the continued run read, the lowest chosen."""
+    from geopose.register import continuation
+
     truth, runs, prep, renderer = _prepared(unilateral_case)
     rig = nominal_poses(runs)
     X = truth.poses["pa"] @ invert(rig["pa"])
-    schedule = TTOSchedule(6)
-    first = run_tto(renderer, tto_views(prep.views, {k: _turned(X, 12.0) @ A for k, A in rig.items()}), schedule,
-                               rig=rig)
+    start = _turned(X, 12.0)
+    first = run_tto(renderer, tto_views(prep.views, {k: start @ A for k, A in rig.items()}), TTOSchedule(6), rig=rig)
     tournament = Tournament({"start": first}, {"start": pair_objective(selection_judge(renderer, first.vessel_selection),
                                                                        first.poses, prep.views)}, "start", first.vessel_selection)
-    near = _turned(first.patient_pose, 0.5 * CONTINUE_TURN_DEG)
-    assert continued(renderer, renderer, prep.views, tournament, near, rig, TTOSchedule(12), Objective()) is tournament
-    out = continued(renderer, renderer, prep.views, tournament, _turned(first.patient_pose, 10.0), rig, TTOSchedule(12),
-                    Objective())
+    turned = turn_deg(first.patient_pose, start)
+    assert turned > 1.0
+    monkeypatch.setattr(continuation, "CONTINUE_TURN_DEG", turned + 0.5)
+    assert continued(renderer, renderer, prep.views, tournament, rig, TTOSchedule(12), Objective()) is tournament
+    monkeypatch.setattr(continuation, "CONTINUE_TURN_DEG", turned - 0.5)
+    out = continued(renderer, renderer, prep.views, tournament, rig, TTOSchedule(12), Objective())
     assert set(out.runs) == {"start", CONTINUED_START} and set(out.objectives) == {"start", CONTINUED_START}
     assert out.chosen == min(out.objectives, key=out.objectives.get)
     judge = selection_judge(renderer, out.vessel_selection)

@@ -16,7 +16,7 @@ its own module:
 6. ``starts.candidate_starts`` and ``tournament.run_tournament``: the test-time optimisation
    (PyTorch; skipped with a note without it) from every distinct candidate start, the result of
    lowest objective kept, the DICOM angles' on a tie; ``continuation.continued``: a result that turned far from
-   the networks' estimate optimised once more from where it ended;
+   its start optimised once more from where it ended;
 7. ``trust.kept_result``: the networks' estimate is kept where the TTO's result is not to be
    trusted (on a given segmentation its vessel NCC per view, ``evidence.view_evidence``, is read for
    that), and without vessel evidence the move from the DICOM angles is bounded;
@@ -116,8 +116,8 @@ def register_case(
         elif options.tto.iterations > 0:
             tournament = run_tournament(renderer, engine.tto_renderer, case.views, starts, rig, options.tto, options.objective,
                                         monitor, estimate=(estimate, X_learned))
-            tournament = continued(renderer, engine.tto_renderer, case.views, tournament, X_learned, rig, options.tto,
-                                   options.objective, monitor)
+            tournament = continued(renderer, engine.tto_renderer, case.views, tournament, rig, options.tto, options.objective,
+                                   monitor)
             if segmentation is not None:  # the result's evidence, (pose, terms) per view: trust and scoring read it
                 measured = {key: (pose, view_evidence(renderer, pose, case.views[key], options.objective))
                             for key, pose in tournament.result.poses.items()}
