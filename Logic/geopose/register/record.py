@@ -16,6 +16,7 @@ from ..dsa import DSARun
 from ..geometry.detector import AP_REORIENT, carm_angles_from_params
 from ..geometry.frames import pose_to_patient
 from ..geometry.poses import params_from_pose, pose_from_carm_angles
+from .continuation import CONTINUE_TURN_DEG, CONTINUED_START
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
@@ -213,7 +214,9 @@ def build_record(
             "tto_start_doc": "the start the result came from: every distinct start runs the TTO's coarse steps, the DICOM "
             "angles' run and the best other by the full-size loss there are the finalists, one judged there by one "
             "objective more than options.tto.stop_behind behind the other stops (tto_stopped_behind), the others run to "
-            "the end, the lower objective wins, the DICOM angles' within a tie of 1e-3 (without a TTO: the best start)",
+            "the end, the lower objective wins, the DICOM angles' within a tie of 1e-3 (without a TTO: the best start); "
+            f"\"{CONTINUED_START}\": a result that turned more than {CONTINUE_TURN_DEG:g} deg from its start ran once more from where it ended, and "
+            "that run won, the finalists and it judged by the vessels it read (register/continuation.py)",
             "start_objective": case.registration.starts,
             "tto_objective": case.registration.tto_objective,
             "tto_ranking_loss": {k: r.ranking_loss for k, r in case.registration.tto_runs.items() if r.ranking_loss is not None},
