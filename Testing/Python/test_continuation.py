@@ -1,4 +1,4 @@
-"""A TTO result that turned far from the networks' estimate runs on from where it ended (``continuation.py``)."""
+"""A TTO result that turned far from its start runs on from where it ended (``continuation.py``)."""
 
 from __future__ import annotations
 

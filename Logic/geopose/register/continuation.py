@@ -2,10 +2,10 @@
 
 The TTO's rotation steps are small (``TTOSchedule.rotation_lr_rad``, annealed), so a start 20-25 deg off the truth
 ends its 25 steps on the way, not at the optimum: on benchmark phantoms 5022 and 5030 the estimate lay 21 and 26 deg
-off, the tournament's result (the run from the estimate) turned 8 and 15 deg and still lay 14 and 12 deg off. Where the
+off, the tournament's result (the run from the estimate) turned 8 and 15 deg and still lay 14 and 9 deg off. Where the
 result turned more than :data:`CONTINUE_TURN_DEG` from its run's start, one more TTO run starts at the result, reading
-the opacified vessels there (``opacified.py``), and every finalist and the new run are judged by that one objective (``objective.py``, both
-views summed): the lowest wins (``tournament.chosen_result``, the DICOM angles' within the tie), so the result is
+the opacified vessels there (``opacified.py``), and every finalist and the new run are judged by that one objective
+(``objective.py``, both views summed): the lowest wins (``tournament.chosen_result``, the DICOM angles' within the tie), so the result is
 still never worse, by the objective, than the acquisition's own geometry optimised alike.
 """
 

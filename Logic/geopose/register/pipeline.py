@@ -41,10 +41,10 @@ from ..options import RegistrationOptions
 from ..volume import Volume
 from .biplane import nominal_poses, patient_pose, view_poses
 from .calibration import calibrate
+from .continuation import continued
 from .engine import NO_TORCH_TTO_NOTE, StageClock, start_case
 from .evidence import view_evidence
 from .init import biplane_init
-from .continuation import continued
 from .mirror import mirror_test
 from .progress import CancelCheck, Monitor, ProgressCallback
 from .published import register_published

@@ -215,8 +215,8 @@ def build_record(
             "angles' run and the best other by the full-size loss there are the finalists, one judged there by one "
             "objective more than options.tto.stop_behind behind the other stops (tto_stopped_behind), the others run to "
             "the end, the lower objective wins, the DICOM angles' within a tie of 1e-3 (without a TTO: the best start); "
-            f"\"{CONTINUED_START}\": a result that turned more than {CONTINUE_TURN_DEG:g} deg from its start ran once more from where it ended, and "
-            "that run won, the finalists and it judged by the vessels it read (register/continuation.py)",
+            f"\"{CONTINUED_START}\": a result that turned more than {CONTINUE_TURN_DEG:g} deg from its start ran once "
+            "more from where it ended, and that run won, the finalists and it judged by the vessels it read (register/continuation.py)",
             "start_objective": case.registration.starts,
             "tto_objective": case.registration.tto_objective,
             "tto_ranking_loss": {k: r.ranking_loss for k, r in case.registration.tto_runs.items() if r.ranking_loss is not None},
