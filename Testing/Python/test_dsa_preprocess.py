@@ -287,3 +287,19 @@ def test_wide_gaussian_blur_is_the_gaussian_of_its_sds():
     assert np.sqrt((wide.sum(axis=0) * offsets ** 2).sum() / wide.sum()) == pytest.approx(20.0, rel=0.05)
     exact = np.exp(-offsets[:, None] ** 2 / (2 * 12.0 ** 2) - offsets[None, :] ** 2 / (2 * 20.0 ** 2)) / (2 * np.pi * 240.0)
     assert np.abs(wide - exact).max() < 0.02 * exact.max()
+
+
+@pytest.mark.parametrize("shape,radius_px", [((256, 256), 16), ((97, 130), 5), ((40, 33), 1), ((12, 50), 16)])
+def test_disc_filter_is_itks_flat_ball_bit_for_bit(shape, radius_px):
+    """The cranium mask's opening: a disc erosion and dilation from ITK line filters equal ITK's own ball filters
+    bit for bit, at the image border and for a disc taller than the image; a bright pixel grows into the ball."""
+    from geopose.images import disc_filter
+
+    image = np.random.default_rng(radius_px).normal(size=shape).astype(np.float32)
+    for erode, op in ((True, sitk.GrayscaleErode), (False, sitk.GrayscaleDilate)):
+        want = sitk.GetArrayFromImage(op(sitk.GetImageFromArray(image), [radius_px] * 2, sitk.sitkBall))
+        np.testing.assert_array_equal(disc_filter(image, radius_px, erode), want)
+    spot = np.zeros((41, 41), np.float32)
+    spot[20, 20] = 1.0
+    grown = disc_filter(spot, 8, erode=False) > 0
+    assert grown[20, 12] and grown[12, 20] and not grown[13, 13] and grown.sum() == pytest.approx(np.pi * 8.5 ** 2, rel=0.1)

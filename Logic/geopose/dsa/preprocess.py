@@ -16,7 +16,7 @@ import SimpleITK as sitk
 from .. import contract as C
 from ..geometry.detector import Detector
 from ..errors import InputError
-from ..images import bilinear_sample, block_mean, gaussian_blur, normalize_minmax, wide_gaussian_blur
+from ..images import bilinear_sample, block_mean, disc_filter, gaussian_blur, normalize_minmax, wide_gaussian_blur
 from ..options import check_clip_percentiles
 from .run import DSARun
 
@@ -76,12 +76,9 @@ def _opening_within(image: np.ndarray, domain: np.ndarray, radius_px: int) -> np
     """Grey-scale opening (erosion, then dilation, disc of ``radius_px``) of ``image`` restricted to
     ``domain``: pixels outside it take no part (they count as the image's maximum in the erosion and
     its minimum in the dilation), so the shutters do not erode the head next to them."""
-    def apply(op, x: np.ndarray) -> np.ndarray:
-        return sitk.GetArrayFromImage(op(sitk.GetImageFromArray(x.astype(np.float32)), [radius_px] * 2, sitk.sitkBall))
-
     inside = image[domain]
-    eroded = apply(sitk.GrayscaleErode, np.where(domain, image, inside.max()))
-    return apply(sitk.GrayscaleDilate, np.where(domain, eroded, inside.min()))
+    eroded = disc_filter(np.where(domain, image, inside.max()), radius_px, erode=True)
+    return disc_filter(np.where(domain, eroded, inside.min()), radius_px, erode=False)
 
 
 def dsa_cranium_mask(image: np.ndarray) -> np.ndarray:
