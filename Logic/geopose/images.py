@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
@@ -115,6 +116,7 @@ def bilinear_sample(image: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np
     return out
 
 
+@lru_cache(maxsize=8)
 def _disc_half_widths(radius_px: int) -> tuple[int, ...]:
     """Half-width (px) of each row ``-radius..radius`` of ITK's flat ball of ``radius_px``, read off ITK's own
     dilation of one bright pixel."""

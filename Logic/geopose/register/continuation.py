@@ -19,12 +19,11 @@ from ..dsa import PreparedDSA
 from ..geometry.poses import rotation_angle_rad
 from ..options import Objective, TTOSchedule
 from ..render.renderer import Renderer, TorchRenderer
-from .biplane import patient_pose
 from .objective import pair_objective
 from .opacified import selection_judge
 from .progress import Monitor
 from .tournament import Tournament, chosen_result
-from .tto import test_time_optimise, tto_views
+from .tto import test_time_optimise, traced_patient_pose, tto_views
 
 __all__ = ["CONTINUE_TURN_DEG", "CONTINUED_START", "turn_deg", "continued"]
 
@@ -49,9 +48,7 @@ def continued(renderer: Renderer, tto_renderer: TorchRenderer, views: Mapping[st
     finalists and that run judged by the vessels the new run read (through ``renderer``, the engine's own kernel) and
     the lowest chosen."""
     result = tournament.result
-    view = next(iter(result.poses))
-    start = patient_pose(np.asarray(result.trace[0]["views"][view]["pose"]), rig[view])
-    turned = turn_deg(result.patient_pose, start)
+    turned = turn_deg(result.patient_pose, traced_patient_pose(result.trace, rig, 0))
     if turned <= CONTINUE_TURN_DEG:
         return tournament
     monitor = monitor or Monitor()

@@ -46,7 +46,7 @@ if TYPE_CHECKING:
     from ..dsa import PreparedDSA
 
 __all__ = ["TTOView", "TTOSchedule", "PAPER_SCHEDULE", "TTOResult", "TTOImages", "TTORun", "test_time_optimise",
-           "restrict_to_opacified", "biplanar_penalty", "tto_views"]
+           "restrict_to_opacified", "traced_patient_pose", "biplanar_penalty", "tto_views"]
 
 #: The render channels the objective uses: the total density, the cranium and the vessels.
 TTO_CHANNELS = ("total", "cranium", "vessels")
@@ -336,9 +336,7 @@ class TTORun:
 
     def patient_at(self, it: int) -> np.ndarray:
         """The patient pose ``(4, 4)`` this run evaluated at iteration ``it`` (a patient-pose run)."""
-        seen = self.trace[it]["views"]
-        name = next(iter(seen))
-        return patient_pose(np.asarray(seen[name]["pose"]), self.rig[name])
+        return traced_patient_pose(self.trace, self.rig, it)
 
     def _seen_losses(self, images: TTOImages):
         """Per full-size patient pose seen so far: (poses, iteration, prior, per view ``images.loss`` terms as floats)."""
@@ -431,6 +429,14 @@ class TTORun:
         patient = patient_pose(poses[self.names[0]], self.rig[self.names[0]]) if self.joint else None
         return TTOResult(poses, best_mncc, best_iteration, patient, tuple(self.trace), tuple(self.axis_searches),
                          vessel_selection=self.vessel_selection, **fields)
+
+
+def traced_patient_pose(trace, rig: Mapping[str, np.ndarray], it: int) -> np.ndarray:
+    """The patient pose ``(4, 4)`` a patient-pose run evaluated at iteration ``it`` of its ``trace`` (a
+    :class:`TTORun`'s or :attr:`TTOResult.trace`), read from its first view's pose and that arm's ``rig`` pose."""
+    seen = trace[it]["views"]
+    name = next(iter(seen))
+    return patient_pose(np.asarray(seen[name]["pose"]), rig[name])
 
 
 def restrict_to_opacified(runs: Mapping[str, TTORun], patients: Mapping[str, np.ndarray], at: tuple[str, np.ndarray],
