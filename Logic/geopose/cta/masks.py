@@ -15,7 +15,7 @@ from .io import sitk_from_volume, sitk_geometry
 from ..errors import InputError
 
 __all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU", "MARROW_MAX_MM2",
-           "BODY_HU", "BODY_SURFACE_MM", "CONTRAST_SPAN_MM", "CONTRAST_PAIR_SPAN_MM"]
+           "BODY_HU", "BODY_SURFACE_MM", "CONTRAST_SPAN_MM"]
 
 #: Radius (mm) of the closing that seals sutures, foramina and thin bone before filling.
 CLOSING_RADIUS_MM = 7.0
@@ -36,11 +36,6 @@ BODY_SURFACE_MM = 5.0
 #: A contrast-filled vessel tree spans at least this along the superior axis (mm); the largest candidate
 #: of a CT without contrast (partial-volume bone) spans less (headsq: 57 mm, with arteries 140 mm).
 CONTRAST_SPAN_MM = 100.0
-#: ... or its two longest pieces together span at least this (mm): where the sinuses enhance little, the bone margin
-#: cuts the arteries at the skull base into a neck piece and an intracranial one (validation phantom 6038: 96 + 94 mm;
-#: the computed mask's arteries alone on validation 6010-6034: 152-220 mm, longest 78-114 mm). CTs without contrast:
-#: headsq 64 + 58 mm, the GE head 60 + 28 mm (experiments/vessel_mask/contrast_span.md).
-CONTRAST_PAIR_SPAN_MM = 140.0
 BONE_MARGIN_MM = 2.5
 #: Lumen inside a bony canal (the ICA through the petrous bone, the vertebral arteries through the transverse
 #: foramina) lies within the bone margin; it is taken back where it is a dark tube (Gaussian scale, mm;
@@ -158,22 +153,20 @@ def vessel_mask_from_cta(volume: Volume) -> Volume:
     mask): an approximation, never a segmentation.
 
     A CT without contrast has no vessel tree: when no component spans :data:`CONTRAST_SPAN_MM` along
-    the superior axis, and its two longest components together span less than :data:`CONTRAST_PAIR_SPAN_MM`,
-    the mask is empty, ``metadata["contrast"]`` is False and ``method`` says so (a registration then runs
-    without the vessel term).
+    the superior axis the mask is empty, ``metadata["contrast"]`` is
+    False and ``method`` says so (a registration then runs without the vessel term).
     """
     axis = _superior_array_axis(volume)
     factors = _work_factors(volume, VESSEL_WORK_SPACING_MM)
     work = volume.shrunk(factors, np.float32) if max(factors) > 1 else volume
-    small, (longest_mm, second_mm) = _vessel_mask(np.asarray(work.array, dtype=np.float32), work.spacing_mm, axis)
+    small, span_mm = _vessel_mask(np.asarray(work.array, dtype=np.float32), work.spacing_mm, axis)
     method = "approximate: contrast HU range in the head and neck away from bone and marrow"
     if max(factors) > 1:
         method += f", on a {VESSEL_WORK_SPACING_MM:g} mm working grid"
-    if longest_mm < CONTRAST_SPAN_MM and longest_mm + second_mm < CONTRAST_PAIR_SPAN_MM:
+    if span_mm < CONTRAST_SPAN_MM:
         return volume.like(np.zeros(volume.array.shape, np.uint8), kind="vessel_mask", contrast=False,
-                           method=f"{method}: no contrast-filled vessel tree (the longest candidate spans {longest_mm:.0f} mm "
-                                  f"< {CONTRAST_SPAN_MM:g} mm, the two longest {longest_mm + second_mm:.0f} mm < "
-                                  f"{CONTRAST_PAIR_SPAN_MM:g} mm; CT without contrast?), empty")
+                           method=f"{method}: no contrast-filled vessel tree (the longest candidate spans {span_mm:.0f} mm "
+                                  f"< {CONTRAST_SPAN_MM:g} mm; CT without contrast?), empty")
     out = _back_to_full(work.like(small), volume)
     return volume.like(out, kind="vessel_mask", contrast=True, method=method)
 
@@ -235,10 +228,10 @@ def _small_holes_slicewise(mask: np.ndarray, axis: int, max_voxels: float) -> np
     return np.moveaxis(small[labels], 0, axis)
 
 
-def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, tuple[float, float]]:
+def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, float]:
     """The rule of :func:`vessel_mask_from_cta` on one grid: ``a`` HU ``[k, j, i]``, voxel sizes
-    ``spacing_mm`` (i, j, k), ``axis`` the superior array axis; uint8 {0, 1} mask and the two longest extents
-    (mm) of its components along ``axis`` (0 where there are fewer)."""
+    ``spacing_mm`` (i, j, k), ``axis`` the superior array axis; uint8 {0, 1} mask and the longest extent
+    (mm) of one of its components along ``axis``."""
     body = sitk.GetArrayFromImage(_largest_component(sitk.GetImageFromArray((a > BODY_HU).astype(np.uint8)))).astype(bool)
     body = _fill_slicewise(body, axis).astype(bool)
     # air inside the head (nasal cavity, paranasal sinuses, pharynx): its thin bony walls blur into the lumen range
@@ -259,8 +252,8 @@ def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, tupl
     shapes = sitk.LabelShapeStatisticsImageFilter()
     shapes.Execute(sitk.GetImageFromArray(labels))
     dim = 2 - axis  # the superior axis as an (i, j, k) index
-    spans = sorted((shapes.GetBoundingBox(label)[3 + dim] for label in shapes.GetLabels()), reverse=True) + [0, 0]
-    return (labels > 0).astype(np.uint8), (float(spans[0] * spacing_mm[dim]), float(spans[1] * spacing_mm[dim]))
+    span_vox = max((shapes.GetBoundingBox(label)[3 + dim] for label in shapes.GetLabels()), default=0)
+    return (labels > 0).astype(np.uint8), float(span_vox * spacing_mm[dim])
 
 
 def _dark_tubes(a: np.ndarray, spacing_mm) -> np.ndarray:
