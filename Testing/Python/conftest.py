@@ -7,6 +7,8 @@ import os
 from pathlib import Path
 
 import pytest
+
+import geopose  # noqa: F401  (before torch: its idle OpenMP threads sleep, as in the CLI)
 import torch
 from shared_folder import find_shared
 

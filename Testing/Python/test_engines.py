@@ -300,6 +300,21 @@ def _run_without_torch(script: str, *args: str) -> None:
     assert proc.returncode == 0, proc.stderr[-4000:]
 
 
+@pytest.mark.parametrize("code, policy, sleeps", [("import torch, geopose", None, False),
+                                                   ("import geopose, torch", None, True),
+                                                   ("import torch, geopose", "PASSIVE", True)])
+def test_idle_openmp_threads_sleep_unless_torch_was_imported_first(code: str, policy: str | None, sleeps: bool):
+    """geopose asks OpenMP's idle threads to sleep (two registrations at once on 2 cores took 11x a lone one's time
+    with spinning threads); after torch it no longer can, and a registration's notes and record say so."""
+    env = {key: value for key, value in os.environ.items() if key != "OMP_WAIT_POLICY"}
+    env.update({"PYTHONPATH": str(REPO / "Logic")} | ({"OMP_WAIT_POLICY": policy} if policy else {}))
+    script = (f"{code}\nfrom geopose.register.engine import engine_notes\nfrom geopose.register.record import library_versions\n"
+              "print(geopose.OPENMP_THREADS_SLEEP, len(engine_notes()), library_versions()['openmp_idle_threads'])")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ([str(sleeps), "0", "sleep"] if sleeps else [str(sleeps), "1", "spin", "(see", "the", "notes)"])
+
+
 def test_registration_runs_without_torch_and_matches_the_torch_engine(phantom_folder):
     """The default options in a process that cannot import torch: onnxruntime + numpy, the TTO
     skipped and said so, and the same poses as the torch engine without TTO."""

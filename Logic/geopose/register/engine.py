@@ -26,11 +26,24 @@ from ..volume import Volume
 from .case import PreparedCase, prepare_case
 from .progress import Monitor
 
-__all__ = ["NO_TORCH_TTO_NOTE", "Engine", "StageClock", "resolve_engine", "start_case", "torch_renderer_for"]
+__all__ = ["NO_TORCH_TTO_NOTE", "SPINNING_THREADS_NOTE", "Engine", "StageClock", "engine_notes", "resolve_engine",
+           "start_case", "torch_renderer_for"]
 
 #: Said (progress, record, Slicer table) when the test-time optimisation cannot run.
 NO_TORCH_TTO_NOTE = ("PyTorch is not installed: calibration, Init and Refine ran on onnxruntime; the test-time "
                      "optimisation needs PyTorch and was skipped")
+#: Said when PyTorch's idle OpenMP threads spin (``geopose.OPENMP_THREADS_SLEEP`` False).
+SPINNING_THREADS_NOTE = ("PyTorch was imported before GeoPose without OMP_WAIT_POLICY=PASSIVE, so its idle threads "
+                         "spin: with other work on this machine a registration can take 10x longer (two at once on 2 "
+                         "cores: 173 s each, against 15 s alone); set OMP_WAIT_POLICY=PASSIVE before starting Python "
+                         "(or Slicer), or import geopose before torch")
+
+
+def engine_notes() -> list[str]:
+    """What the user should know about how this process computes (:data:`SPINNING_THREADS_NOTE`), for the record."""
+    from .. import OPENMP_THREADS_SLEEP  # read when called
+
+    return [SPINNING_THREADS_NOTE] if torch_available() and not OPENMP_THREADS_SLEEP else []
 
 
 def torch_renderer_for(renderer: Renderer) -> TorchRenderer | None:

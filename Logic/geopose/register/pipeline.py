@@ -42,7 +42,7 @@ from ..volume import Volume
 from .biplane import nominal_poses, patient_pose, view_poses
 from .calibration import calibrate
 from .continuation import continued
-from .engine import NO_TORCH_TTO_NOTE, StageClock, start_case
+from .engine import NO_TORCH_TTO_NOTE, StageClock, engine_notes, start_case
 from .evidence import view_evidence
 from .init import biplane_init
 from .mirror import mirror_test
@@ -84,7 +84,7 @@ def register_case(
     masks = {"cranium_mask": cranium_mask, "segmentation": segmentation, "dsa_masks": dsa_masks}
     if options.independent_views:
         return register_published(cta, dsa, models=models, options=options, progress=progress, cancel=cancel, **masks)
-    monitor, clock, notes, rig = Monitor(progress, cancel), StageClock(), [], nominal_poses(dsa)
+    monitor, clock, notes, rig = Monitor(progress, cancel), StageClock(), engine_notes(), nominal_poses(dsa)
     with clock("prepare"):
         engine, case = start_case(cta, dsa, options, models, monitor=monitor, **masks)
     renderer, nets, render_px = engine.renderer, engine.models, engine.render_px

@@ -20,7 +20,7 @@ from ..volume import Volume
 from .biplane import nominal_poses
 from .calibration import calibrate
 from .case import VIEW_KEYS
-from .engine import NO_TORCH_TTO_NOTE, StageClock, start_case
+from .engine import NO_TORCH_TTO_NOTE, StageClock, engine_notes, start_case
 from .init import init_views
 from .objective import PAPER_OBJECTIVE
 from .progress import CancelCheck, Monitor, ProgressCallback
@@ -38,7 +38,7 @@ def register_published(
     progress: ProgressCallback | None = None, cancel: CancelCheck | None = None,
 ) -> CaseRegistration:
     """Register each view of ``dsa`` to ``cta`` on its own (arguments as ``pipeline.register_case``)."""
-    monitor, clock, notes = Monitor(progress, cancel), StageClock(), []
+    monitor, clock, notes = Monitor(progress, cancel), StageClock(), engine_notes()
     with clock("prepare"):
         engine, case = start_case(cta, dsa, options, models, cranium_mask=cranium_mask, segmentation=segmentation,
                                   dsa_masks=dsa_masks, monitor=monitor)

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import __version__
+from .. import OPENMP_THREADS_SLEEP, __version__
 from .. import contract as C
 from ..dsa import DSARun
 from ..geometry.detector import AP_REORIENT, carm_angles_from_params
@@ -86,6 +86,7 @@ def library_versions() -> dict[str, str]:
         "SimpleITK": SimpleITK.Version_VersionString(),
         "onnxruntime": onnxruntime.__version__,
         "pydicom": pydicom.__version__,
+        "openmp_idle_threads": "sleep" if OPENMP_THREADS_SLEEP else "spin (see the notes)",
     }
 
 
