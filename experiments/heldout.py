@@ -12,9 +12,10 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator, TextIO
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
+
+import geopose  # noqa: E402,F401  (before torch: its OpenMP threads then sleep when idle, geopose.OPENMP_THREADS_SLEEP)
+import torch  # noqa: E402
 
 from geopose.bench.cases import BenchCase, ge_head_case, headsq_case, phantom_case, seed_range, training_seeds  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402

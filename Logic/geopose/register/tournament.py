@@ -1,7 +1,8 @@
 """The test-time optimisation of one patient pose from several starts, one result kept (ours).
 
 The DICOM angles' start, the best other distinct candidate starts by their objective (``starts.py``;
-``options.TTOSchedule.starts`` in all) and the networks' estimate run the TTO's coarse steps. The vessels the
+``options.TTOSchedule.starts`` in all), the networks' estimate and the estimate turned either way about the axis both
+image planes contain (``starts.turned_starts``) run the TTO's coarse steps. The vessels the
 runs show opacified are read at the networks' estimate before any step, and the runs that start near it compare
 those alone (``opacified.py``; read after the coarse steps at the pose of the start of lowest loss when too few
 pass there); the DICOM angles' run and the best other after the coarse steps (``options.TTOSchedule.finalists``
@@ -27,7 +28,7 @@ from ..options import Objective, TTOSchedule
 from .objective import pair_objective
 from .opacified import VesselSelection, selection_judge
 from .progress import Monitor
-from .starts import DICOM_START, Starts, same_pose
+from .starts import DICOM_START, Starts, same_pose, turned_starts
 from .tto import TTOImages, TTOResult, TTORun, TTOView, restrict_to_opacified, tto_views
 
 __all__ = ["OBJECTIVE_TIE", "Tournament", "chosen_result", "optimise_from_starts", "run_tournament", "tried_starts"]
@@ -154,9 +155,12 @@ def run_tournament(renderer: Renderer, tto_renderer: TorchRenderer, views: Mappi
                    rig: Mapping[str, np.ndarray], schedule: TTOSchedule, objective: Objective, monitor: Monitor, *,
                    estimate: tuple[str, np.ndarray] | None = None) -> Tournament:
     """The TTO (``schedule``, ``objective``) from the starts :func:`tried_starts` picks (``schedule.starts`` and the
-    networks' ``estimate``, a name and a patient pose, where the opacified vessels are read), the DICOM angles' among
+    networks' ``estimate``, a name and a patient pose, where the opacified vessels are read) and the estimate turned
+    either way about the common axis (``starts.turned_starts``, ``schedule.turned_start_deg``), the DICOM angles' among
     the finalists; the finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
     tried = tried_starts(starts, schedule.starts, None if estimate is None else estimate[0])
+    if estimate is not None and estimate[0] in starts.poses:
+        tried |= turned_starts(estimate, rig, views, renderer.volume, schedule.turned_start_deg)
     runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), tried, rig, schedule,
                                 keep=(DICOM_START,), objective=objective, read_at=estimate, monitor=monitor)
     selection = next((r.vessel_selection for r in runs.values() if r.vessel_selection), None)
