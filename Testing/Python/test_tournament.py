@@ -137,7 +137,8 @@ def test_the_estimate_turned_either_way_about_the_common_axis_joins_the_starts(u
     """``turned_starts``: the estimate turned by -8 and +8 deg about the axis both image planes contain (its rotation
     part along that axis exactly the turn), along the valley; none for a turn of 0. Through ``run_tournament`` an
     estimate 10 deg off the truth about that axis (the networks' commonest error) ends nearer the truth with those
-    starts than without them: the short TTO from the estimate alone reaches only part of the way."""
+    starts than without them: the short TTO from the estimate alone reaches only part of the way; the estimate's own run
+    then goes on as a finalist beside the best turned one."""
     from dataclasses import replace
 
     import numpy as np
@@ -170,11 +171,15 @@ def test_the_estimate_turned_either_way_about_the_common_axis_joins_the_starts(u
 
     starts = Starts({DICOM_START: np.eye(4), "estimate": X}, {DICOM_START: 0.0, "estimate": -1.0})
     schedule = TTOSchedule(iterations=10, turned_start_deg=0.0)
-    errors = {}
+    errors, results = {}, {}
     for deg in (0.0, 8.0):
-        result = run_tournament(renderer, renderer, prep.views, starts, rig, replace(schedule, turned_start_deg=deg),
-                                Objective(), Monitor(), estimate=("estimate", X))
-        parts = pose_error_components(result.result.poses["pa"], truth.poses["pa"])
-        errors[deg] = (result.chosen, float(np.hypot(parts["in_plane_rotation_deg"], parts["out_of_plane_rotation_deg"])))
+        results[deg] = run_tournament(renderer, renderer, prep.views, starts, rig, replace(schedule, turned_start_deg=deg),
+                                      Objective(), Monitor(), estimate=("estimate", X))
+        parts = pose_error_components(results[deg].result.poses["pa"], truth.poses["pa"])
+        errors[deg] = (results[deg].chosen, float(np.hypot(parts["in_plane_rotation_deg"], parts["out_of_plane_rotation_deg"])))
+    assert set(results[8.0].runs) == {DICOM_START, "estimate", *turned}
+    own = results[8.0].runs["estimate"]  # a finalist beside the turned one: to the end, or stopped as too far behind
+    assert own.stopped_at is None or own.behind > TTOSchedule.stop_behind, own.behind
+    assert results[0.0].runs["estimate"].stopped_at is None
     assert errors[8.0][0] == "estimate turned +8 deg", errors
     assert errors[8.0][1] < 1.5 and errors[0.0][1] > 2 * errors[8.0][1], errors  # measured 1.0 against 2.8 deg

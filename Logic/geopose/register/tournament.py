@@ -16,7 +16,7 @@ acquisition's own geometry optimised alike (or, stopped, than where it stood aft
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -157,12 +157,20 @@ def run_tournament(renderer: Renderer, tto_renderer: TorchRenderer, views: Mappi
     """The TTO (``schedule``, ``objective``) from the starts :func:`tried_starts` picks (``schedule.starts`` and the
     networks' ``estimate``, a name and a patient pose, where the opacified vessels are read) and the estimate turned
     either way about the common axis (``starts.turned_starts``, ``schedule.turned_start_deg``), the DICOM angles' among
-    the finalists; the finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
+    the finalists, and with the turned starts the estimate's run and the best of the others too (one finalist more: the
+    ranking after the coarse steps can put a turned start ahead of an estimate whose run would end lower); the
+    finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
     tried = tried_starts(starts, schedule.starts, None if estimate is None else estimate[0])
-    if estimate is not None and estimate[0] in starts.poses:
-        tried |= turned_starts(estimate, rig, views, renderer.volume, schedule.turned_start_deg)
+    keep: tuple[str, ...] = (DICOM_START,)
+    turned = turned_starts(estimate, rig, views, renderer.volume, schedule.turned_start_deg) \
+        if estimate is not None and estimate[0] in starts.poses else {}
+    if turned:
+        own = next(k for k, X in tried.items() if same_pose(X, estimate[1]))  # the estimate's run, under its pose's name
+        keep += () if own in keep else (own,)
+        schedule = replace(schedule, finalists=max(schedule.finalists, len(keep) + 1))
+        tried |= turned
     runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), tried, rig, schedule,
-                                keep=(DICOM_START,), objective=objective, read_at=estimate, monitor=monitor)
+                                keep=keep, objective=objective, read_at=estimate, monitor=monitor)
     selection = next((r.vessel_selection for r in runs.values() if r.vessel_selection), None)
     judge = selection_judge(renderer, selection)
     objectives = {name: pair_objective(judge, run.poses, views, objective) for name, run in runs.items()
