@@ -173,13 +173,6 @@ class TTOSchedule(_Group):
     #: 6077 and 6088, where a raw Init start scored better, 38.2 / 5.7 -> 1.3 / 2.9 mm and 2.6 / 2.4 -> 1.5 / 2.1 mm.
     starts: int = setting(2, "candidate starts that run the coarse steps: the DICOM angles' and the best others by "
                           "their objective (and the networks' estimate)", bounds=(1, 100))
-    #: Validation phantoms 6030-6099 (2 mm, default path): 4 of 12 results more than 4 deg off ended lower by the
-    #: objective when the TTO started at the truth (an oracle start). With these two starts, and the estimate's own run
-    #: kept to the end beside the best of them (``tournament.run_tournament``), validation 6030-6049: carotid mPCD 1.73
-    #: -> 1.38 mm, rotation 2.02 -> 1.79 deg, 5 seeds better and 1 worse, about 6.5 s more a case on 2 cores
-    #: (experiments/tto_schedule/turned_starts.md).
-    turned_start_deg: float = setting(8.0, "the networks' estimate turned this far (deg) either way about the axis both "
-                                      "image planes contain joins the starts (0: it does not)", bounds=(0.0, 45.0))
     finalists: int = setting(2, "starts that run on after the coarse steps", bounds=(1, 100))
     #: On validation phantoms 6010-6029 (2 mm, default path) the gap between the two finalists after the coarse steps,
     #: judged by one objective, closed by at most 0.1 over the remaining steps (final gaps 0.1-0.92, one pair converged

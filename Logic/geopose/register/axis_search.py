@@ -15,22 +15,9 @@ import numpy as np
 
 from ..geometry.detector import Detector
 from ..geometry.poses import project_points
-from ..render.volume import RenderVolume
 from .biplane import common_axis, moved_by
 
-__all__ = ["VALLEY_POINTS", "valley_points", "valley_turn", "best_turn"]
-
-#: Most points (vessel voxel centres) the common-axis search projects to find its valley.
-VALLEY_POINTS = 3000
-
-
-def valley_points(volume: RenderVolume) -> np.ndarray:
-    """At most :data:`VALLEY_POINTS` voxel centres ``(N, 3)`` (mm, centred CTA frame) of ``volume``'s vessels (its
-    cranium's without vessels), evenly strided: what a turn along the valley keeps still (:func:`valley_turn`)."""
-    kji = volume.mask_voxels("vessels")
-    if not len(kji):
-        kji = volume.mask_voxels("cranium")
-    return volume.centred_points(kji[:: max(1, -(-len(kji) // VALLEY_POINTS))])
+__all__ = ["valley_turn", "best_turn"]
 
 
 def valley_turn(

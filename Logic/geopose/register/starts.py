@@ -8,15 +8,8 @@ networks can be degrees off where the acquisition's own geometry is nearer. So:
   similar end);
 * the TTO's tournament (``tournament.py``) runs from the distinct ones of: the DICOM-angle pose
   (``X = I``), the fused Init, each view's Init alone and the networks' estimate (Refine, with the
-  similarity search when it ran), each scored by the objective (:func:`candidate_starts`), and the
-  estimate turned either way about the axis both image planes contain (:func:`turned_starts`). Without
+  similarity search when it ran), each scored by the objective (:func:`candidate_starts`). Without
   vessel evidence only the DICOM angles start: the silhouette alone cannot tell the others apart.
-
-The networks' estimate errs mostly by that turn (validation phantoms 6030-6099: 15 of 70 more than 9 deg off, a
-median 95 % of the error about that axis), which the TTO's small rotation steps and its common-axis searches
-(``axis_search.py``) reach only part of the way: started at the truth instead, 4 of 12 results more than 4 deg off
-ended lower by the objective, so the search, not the objective, had failed them
-(experiments/tto_schedule/turned_starts.md).
 """
 
 from __future__ import annotations
@@ -28,15 +21,12 @@ import numpy as np
 
 from ..dsa import PreparedDSA
 from ..render.renderer import Renderer
-from ..render.volume import RenderVolume
-from .axis_search import valley_points, valley_turn
-from .biplane import moved_by, view_poses
+from .biplane import view_poses
 from .init import InitStage
 from ..options import Objective
 from .objective import pair_objective
 
-__all__ = ["DICOM_START", "SEARCHED_START", "REFINED_START", "Starts", "refine_starts", "candidate_starts", "turned_starts",
-           "same_pose"]
+__all__ = ["DICOM_START", "SEARCHED_START", "REFINED_START", "Starts", "refine_starts", "candidate_starts", "same_pose"]
 
 #: The candidate start at the DICOM angles' geometry (``X = I``).
 DICOM_START = "DICOM angles"
@@ -97,18 +87,3 @@ def candidate_starts(renderer: Renderer, views: Mapping[str, PreparedDSA], rig: 
     if vessel_evidence:
         poses |= {"Init": init.patient_pose, **{f"Init {key.upper()}": X for key, X in init.implied.items()}, **learned}
     return Starts(poses, {name: pair_objective(renderer, view_poses(X, rig), views, objective) for name, X in poses.items()})
-
-
-def turned_starts(estimate: tuple[str, np.ndarray], rig: Mapping[str, np.ndarray], views: Mapping[str, PreparedDSA],
-                  volume: RenderVolume, turn_deg: float) -> dict[str, np.ndarray]:
-    """The patient pose of the ``estimate`` (a name and ``(4, 4)``) turned by -``turn_deg`` and +``turn_deg`` about the
-    axis both image planes contain, along its valley (:func:`.axis_search.valley_turn`: the other five parameters
-    compensate the pixel motion of ``volume``'s vessels in the views' TTO detectors): ``{"<name> turned -8 deg": X, ...}``;
-    empty for a turn of 0 or without a common axis."""
-    name, X = estimate
-    direction = valley_turn(X, rig, {k: views[k].tto_detector for k in rig}, valley_points(volume)) if turn_deg > 0 else None
-    if direction is None:
-        return {}
-    return {f"{name} turned {sign * turn_deg:+g} deg": moved_by(X, direction[0] * np.radians(sign * turn_deg),
-                                                               direction[1] * np.radians(sign * turn_deg))
-            for sign in (-1.0, 1.0)}

@@ -1,8 +1,7 @@
 """The test-time optimisation of one patient pose from several starts, one result kept (ours).
 
 The DICOM angles' start, the best other distinct candidate starts by their objective (``starts.py``;
-``options.TTOSchedule.starts`` in all), the networks' estimate and the estimate turned either way about the axis both
-image planes contain (``starts.turned_starts``) run the TTO's coarse steps. The vessels the
+``options.TTOSchedule.starts`` in all) and the networks' estimate run the TTO's coarse steps. The vessels the
 runs show opacified are read at the networks' estimate before any step, and the runs that start near it compare
 those alone (``opacified.py``; read after the coarse steps at the pose of the start of lowest loss when too few
 pass there); the DICOM angles' run and the best other after the coarse steps (``options.TTOSchedule.finalists``
@@ -16,7 +15,7 @@ acquisition's own geometry optimised alike (or, stopped, than where it stood aft
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -28,7 +27,7 @@ from ..options import Objective, TTOSchedule
 from .objective import pair_objective
 from .opacified import VesselSelection, selection_judge
 from .progress import Monitor
-from .starts import DICOM_START, Starts, same_pose, turned_starts
+from .starts import DICOM_START, Starts, same_pose
 from .tto import TTOImages, TTOResult, TTORun, TTOView, restrict_to_opacified, tto_views
 
 __all__ = ["OBJECTIVE_TIE", "Tournament", "chosen_result", "optimise_from_starts", "run_tournament", "tried_starts"]
@@ -155,22 +154,11 @@ def run_tournament(renderer: Renderer, tto_renderer: TorchRenderer, views: Mappi
                    rig: Mapping[str, np.ndarray], schedule: TTOSchedule, objective: Objective, monitor: Monitor, *,
                    estimate: tuple[str, np.ndarray] | None = None) -> Tournament:
     """The TTO (``schedule``, ``objective``) from the starts :func:`tried_starts` picks (``schedule.starts`` and the
-    networks' ``estimate``, a name and a patient pose, where the opacified vessels are read) and the estimate turned
-    either way about the common axis (``starts.turned_starts``, ``schedule.turned_start_deg``), the DICOM angles' among
-    the finalists, and with the turned starts the estimate's run and the best of the others too (one finalist more: the
-    ranking after the coarse steps can put a turned start ahead of an estimate whose run would end lower); the
-    finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
+    networks' ``estimate``, a name and a patient pose, where the opacified vessels are read), the DICOM angles' among
+    the finalists; the finalists judged by the objective rendered through ``renderer`` (the engine's own kernel)."""
     tried = tried_starts(starts, schedule.starts, None if estimate is None else estimate[0])
-    keep: tuple[str, ...] = (DICOM_START,)
-    turned = turned_starts(estimate, rig, views, renderer.volume, schedule.turned_start_deg) \
-        if estimate is not None and estimate[0] in starts.poses else {}
-    if turned:
-        own = next(k for k, X in tried.items() if same_pose(X, estimate[1]))  # the estimate's run, under its pose's name
-        keep += () if own in keep else (own,)
-        schedule = replace(schedule, finalists=max(schedule.finalists, len(keep) + 1))
-        tried |= turned
     runs = optimise_from_starts(tto_renderer, tto_views(views, view_poses(np.eye(4), rig)), tried, rig, schedule,
-                                keep=keep, objective=objective, read_at=estimate, monitor=monitor)
+                                keep=(DICOM_START,), objective=objective, read_at=estimate, monitor=monitor)
     selection = next((r.vessel_selection for r in runs.values() if r.vessel_selection), None)
     judge = selection_judge(renderer, selection)
     objectives = {name: pair_objective(judge, run.poses, views, objective) for name, run in runs.items()

@@ -34,7 +34,7 @@ import numpy as np
 from ..geometry.detector import Detector
 from ..images import resize_bilinear
 from ..render.renderer import TorchRenderer
-from .axis_search import best_turn, valley_points, valley_turn
+from .axis_search import best_turn, valley_turn
 from .biplane import common_axis, patient_pose, view_poses
 from .nadam import OneCycleNAdam
 from ..options import Objective, TTOSchedule
@@ -54,6 +54,8 @@ TTO_CHANNELS = ("total", "cranium", "vessels")
 PAPER_TRANSLATION_SCALE_MM = 200.0
 #: Weight of the PA/lateral orthogonality term (``RegistrationOptions.biplanar``, independent views).
 BIPLANAR_WEIGHT = 0.1
+#: Most points (vessel voxel centres) the common-axis search projects to find its valley.
+VALLEY_POINTS = 3000
 
 
 @dataclass
@@ -160,10 +162,15 @@ class TTOImages:
                     drr(start, detector=det, channels=(self.channels[2],)).amax() > 0)
 
     def valley_points(self) -> np.ndarray:
-        """The points of the vessels the objective renders that the common-axis search keeps still
-        (:func:`.axis_search.valley_points`)."""
+        """At most ``VALLEY_POINTS`` voxel centres (mm, centred CTA frame) of the vessels the objective
+        renders (the cranium's without vessels), evenly strided: what the common-axis search keeps
+        still (:func:`.axis_search.valley_turn`)."""
         if self._valley_points is None:
-            self._valley_points = valley_points(self.renderer.volume)
+            volume = self.renderer.volume
+            kji = volume.mask_voxels("vessels")
+            if not len(kji):
+                kji = volume.mask_voxels("cranium")
+            self._valley_points = volume.centred_points(kji[:: max(1, -(-len(kji) // VALLEY_POINTS))])
         return self._valley_points
 
     def loss(self, name: str, pose, size: str):
