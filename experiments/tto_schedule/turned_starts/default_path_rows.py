@@ -13,7 +13,6 @@ import numpy as np
 from geopose.bench.cases import phantom_case
 from geopose.metrics.measures import pose_error_components
 from geopose.nets import load_models
-from geopose.options import RegistrationOptions
 from geopose.register import register_case
 from geopose.register.evaluate import carotid_mpcd
 
@@ -29,16 +28,16 @@ def view_errors(case, poses) -> dict:
     return out
 
 
-def run_seeds(seeds: list[int], out_path: str, mode: str, info: dict, options: RegistrationOptions | None = None) -> None:
-    """Register each seed (2 mm phantoms, ``options``: the defaults when None) and append its row to ``out_path``;
-    ``info`` is filled by the variant's patch during the registration and cleared before each."""
+def run_seeds(seeds: list[int], out_path: str, mode: str, info: dict) -> None:
+    """Register each seed (2 mm phantoms, default options) and append its row to ``out_path``; ``info`` is filled by
+    the variant's patch during the registration and cleared before each."""
     models = load_models(runtime="torch")
     with open(out_path, "a") as out:
         for seed in seeds:
             info.clear()
             with tempfile.TemporaryDirectory() as tmp:
                 case = phantom_case(seed, Path(tmp), 2.0)
-                reg = register_case(case.cta, case.runs, models=models, options=options)
+                reg = register_case(case.cta, case.runs, models=models)
             r = reg.registration
             row = {"seed": seed, "mode": mode, "kept_learned": bool(r.kept_learned), "chosen": r.chosen_start,
                    "tto_objective": r.tto_objective,

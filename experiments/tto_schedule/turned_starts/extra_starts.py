@@ -1,11 +1,11 @@
 """The default path (``default_path_rows.py``) with starts derived from the networks' estimate along the common-axis
 valley (``axis_search.valley_turn``), patched into the TTO tournament. The rows in this folder ran at 60a693c (session
-43), before the product added turned starts itself; the script switches the product's off (``tto.turned_start_deg`` 0).
+43); the product has no such starts (tried in d832a0f and reverted).
 
 * ``replace`` / ``extra``: a single-pose scan every STEP deg within +-16 (each turn scored by the objective with the
   vessels read opacified there); the best turn replaces the estimate, or joins the starts (not kept);
 * ``blind`` / ``keep-estimate``: the estimate turned -STEP and +STEP deg join the starts; ``keep-estimate`` also keeps
-  the estimate's own run among the finalists (the product's rule since).
+  the estimate's own run among the finalists.
 
 Usage, from the repository root:
 
@@ -19,7 +19,6 @@ import numpy as np
 
 import geopose  # noqa: F401  (before torch)
 from default_path_rows import run_seeds
-from geopose.options import RegistrationOptions
 from geopose.register import pipeline, tournament
 from geopose.register.axis_search import valley_turn
 from geopose.register.biplane import moved_by, view_poses
@@ -77,5 +76,4 @@ def optimise_keeping_estimate(renderer, views, starts, rig, schedule, *, keep=()
 run_tournament, tried_starts, optimise_from_starts = pipeline.run_tournament, tournament.tried_starts, tournament.optimise_from_starts
 pipeline.run_tournament, tournament.tried_starts = with_extra_starts, tried_with_added
 tournament.optimise_from_starts = optimise_keeping_estimate
-run_seeds([int(s) for s in sys.argv[1].split(",")], sys.argv[2], MODE, INFO,
-          RegistrationOptions().replace(**{"tto.turned_start_deg": 0.0}))
+run_seeds([int(s) for s in sys.argv[1].split(",")], sys.argv[2], MODE, INFO)

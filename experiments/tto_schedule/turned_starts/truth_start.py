@@ -1,6 +1,6 @@
 """An oracle: the true patient pose joins the TTO tournament as a start (kept among the finalists). Where its run
 ends lower by the objective than the default result, the search failed the default; where it ends higher, the
-objective's optimum lies off the truth. Ran at 60a693c (session 43); the product's turned starts are switched off. Usage:
+objective's optimum lies off the truth. Ran at 60a693c (session 43). Usage:
 
     .venv/bin/python experiments/tto_schedule/turned_starts/truth_start.py 6065,6080 OUT.jsonl
 """
@@ -12,7 +12,6 @@ import geopose
 from geopose.bench.cases import phantom_case
 from geopose.metrics.measures import pose_error_components
 from geopose.nets import load_models
-from geopose.options import RegistrationOptions
 from geopose.register import register_case, tournament as T
 from geopose.register.biplane import nominal_poses, patient_pose
 from geopose.register.evaluate import carotid_mpcd
@@ -41,7 +40,7 @@ for seed in [int(s) for s in sys.argv[1].split(",")]:
         case = phantom_case(seed, Path(tmp), 2.0)
         rig = nominal_poses(case.runs)
         TRUTH["X"] = patient_pose(case.true_poses["pa"], rig["pa"])
-        reg = register_case(case.cta, case.runs, models=models, options=RegistrationOptions().replace(**{"tto.turned_start_deg": 0.0}))
+        reg = register_case(case.cta, case.runs, models=models)
     r = reg.registration
     row = {"seed": seed, "chosen": r.chosen_start, "objectives": {k: round(v, 4) for k, v in r.tto_objective.items()},
            "runs": {k: errs(case, run.poses) for k, run in r.tto_runs.items()},

@@ -20,7 +20,7 @@ from geopose.register.opacified import read_opacified, selection_judge
 from geopose.metrics.measures import pose_error_components
 models = load_models(runtime="torch")
 AT = sys.argv[3]
-opts = RegistrationOptions().replace(**{"tto.iterations": 0 if AT == "estimate" else 25, "tto.turned_start_deg": 0.0})
+opts = RegistrationOptions().replace(**{"tto.iterations": 0}) if AT == "estimate" else RegistrationOptions()
 SIL = Objective(vessel_weight=0.0)
 TURNS = np.arange(-16, 17, 2.0)
 out = open(sys.argv[2], "a")
