@@ -21,6 +21,7 @@ import json
 import sys
 import tempfile
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -79,12 +80,15 @@ class OracleRead:
                                          selection.start, selection.iteration, selection.patient_pose, kept, subset)
 
 
-def main() -> None:
+def drift_rows(variants: dict[str, Callable[[OracleRead], None]], description: str, default_seeds: str) -> None:
+    """One JSON line per held-out phantom (the command line of ``heldout.parse_heldout_args``): the default TTO started
+    at the true pose once per variant, each variant's setter called on the oracle read before its run; per variant the
+    TTO's end (carotid mPCD PA / LAT, mm; rotation error, deg), the voxels kept and the selection's composition."""
     models = load_models(runtime="torch")
     options = RegistrationOptions().replace(**{"tto.iterations": 0})
     read = OracleRead()
     tto.read_opacified = read  # the TTO reads through the oracle for this script only
-    args, seeds = parse_heldout_args(__doc__.splitlines()[0], "6020-6031")
+    args, seeds = parse_heldout_args(description, default_seeds)
     out = open(args.doc, "w") if args.doc else sys.stdout
     for seed in seeds:
         with tempfile.TemporaryDirectory() as tmp:
@@ -95,8 +99,8 @@ def main() -> None:
             reg = register_case(case.cta, case.runs, models=models, options=options)
             prepared = {k: reg.views[k].prepared for k in ("pa", "lat")}
             row = {"case": case.name}
-            for name, drop in DROPPED.items():
-                read.drop = drop
+            for name, setup in variants.items():
+                setup(read)
                 result = test_time_optimise(torch_renderer_for(reg.renderer), tto_views(prepared, {k: X @ rig[k] for k in rig}),
                                             TTOSchedule(args.iterations), rig=rig)
                 parts = pose_error_components(result.poses["pa"], case.true_poses["pa"])
@@ -105,9 +109,19 @@ def main() -> None:
                                           for k in ("pa", "lat")],
                              "rotation_deg": round(float(np.hypot(parts["in_plane_rotation_deg"],
                                                                   parts["out_of_plane_rotation_deg"])), 3),
-                             "kept": None if result.vessel_selection is None else result.vessel_selection.kept_voxels}
+                             "kept": None if result.vessel_selection is None else result.vessel_selection.kept_voxels,
+                             "selection": dict(read.composition)}
             row["selection"] = read.composition
             print(json.dumps(row), file=out, flush=True)
+
+
+def main() -> None:
+    def dropping(drop):
+        def setup(read: OracleRead) -> None:
+            read.drop = drop
+        return setup
+
+    drift_rows({name: dropping(drop) for name, drop in DROPPED.items()}, __doc__.splitlines()[0], "6020-6031")
 
 
 if __name__ == "__main__":
