@@ -80,13 +80,15 @@ class OracleRead:
                                          selection.start, selection.iteration, selection.patient_pose, kept, subset)
 
 
-def drift_rows(variants: dict[str, Callable[[OracleRead], None]], description: str, default_seeds: str) -> None:
+def drift_rows(variants: dict[str, Callable[[OracleRead], None]], description: str, default_seeds: str,
+               read: OracleRead | None = None) -> None:
     """One JSON line per held-out phantom (the command line of ``heldout.parse_heldout_args``): the default TTO started
     at the true pose once per variant, each variant's setter called on the oracle read before its run; per variant the
-    TTO's end (carotid mPCD PA / LAT, mm; rotation error, deg), the voxels kept and the selection's composition."""
+    TTO's end (carotid mPCD PA / LAT, mm; rotation error, deg), the voxels kept and the selection's composition;
+    ``read``: the oracle read (default :class:`OracleRead`)."""
     models = load_models(runtime="torch")
     options = RegistrationOptions().replace(**{"tto.iterations": 0})
-    read = OracleRead()
+    read = read or OracleRead()
     tto.read_opacified = read  # the TTO reads through the oracle for this script only
     args, seeds = parse_heldout_args(description, default_seeds)
     out = open(args.doc, "w") if args.doc else sys.stdout
