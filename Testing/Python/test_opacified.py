@@ -29,11 +29,6 @@ def test_the_opacified_vessels_read_near_the_truth_are_the_injected_ones(unilate
     precision, recall = injected[kept].mean(), kept[injected & vessels].mean()
     assert base < 0.3 and precision > 0.6 and recall > 0.5, (base, precision, recall)
     np.testing.assert_array_equal(selection.volume.mask("vessels"), kept)
-    # Fitted (``vessel_fit.py``), the read keeps a subset, the injected arteries in a larger share.
-    fitted = read_opacified(prep.volume, X, rig, views, fitted=True)
-    assert fitted.applied and not (fitted.keep & ~kept).any() and fitted.kept_voxels < selection.kept_voxels
-    assert injected[fitted.keep].mean() > precision + 0.05 and fitted.keep[injected & vessels].mean() > 0.4, (
-        injected[fitted.keep].mean(), precision, fitted.keep[injected & vessels].mean())
     # How far a run's pose places the kept vessels from where they were read: a 10 mm shift is 10 mm.
     far = X.copy()
     far[:3, 3] += [6.0, 0.0, 8.0]

@@ -7,11 +7,8 @@ head's own midsagittal plane (``cta/symmetry.py``; a plane normal to the header'
 by twice the head's turn in the scanner, up to 10 deg on validation phantoms, and the hypothesis then
 started far from its own optimum), so the head stays in place and the networks' estimate is a start for
 it as for the CTA as given. It runs a short TTO from that estimate, the vessels the runs show opacified
-read at its start (``opacified.py``) as the tournament reads them at that estimate. Both ends are judged by the
-objective (``objective.py``, both views summed) on the vessels the runs need at that end's own pose: read there and
-thinned by the two-view emission fit (``vessel_fit.py``), which leaves out most veins that lie on the arteries. On
-validation phantoms 6010-6014 and 6024-6029 that fit failed 7 of 11 mirrored CTAs where the vessels read at the start
-failed 4, and no correct one (experiments/mirror/terms.md, section 4). The mirrored hypothesis
+read at its start (``opacified.py``) as the tournament reads them at that estimate, and both are judged
+by the objective on the vessels each read (``objective.py``, both views summed). The mirrored hypothesis
 explaining the runs better than the tournament's result by more than :data:`MIRROR_LOSS_MARGIN` fails
 the result; within that margin either way the registration says the runs do not tell the sides apart
 (:data:`SIDES_ALIKE_NOTE`). Both are weighed on the grid of the finest level the TTO rendered (``RenderVolume.coarsened``): a
@@ -30,11 +27,11 @@ import numpy as np
 from ..cta.symmetry import Midplane, midsagittal_plane, mirrored_across
 from ..dsa import PreparedDSA
 from ..render.renderer import Renderer, TorchRenderer, make_renderer
-from ..render.volume import RenderVolume
-from .biplane import patient_pose, view_poses
+from ..render.volume import RenderVolume, coarse_mask
+from .biplane import view_poses
 from ..options import Objective, TTOSchedule
 from .objective import pair_objective
-from .opacified import read_opacified
+from .opacified import selection_judge
 from .progress import Monitor
 from .tournament import Tournament
 
@@ -104,35 +101,29 @@ def mirrored_volume(volume: RenderVolume, plane: Midplane) -> RenderVolume:
 def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], tournament: Tournament, estimate: np.ndarray,
                 rig: Mapping[str, np.ndarray], objective: Objective = Objective(), device: str = "cpu",
                 monitor: Monitor | None = None, factors: tuple[int, int, int] | None = None) -> MirrorTest:
-    """The tournament's result against the mirrored CTA optimised from the networks' ``estimate`` (a patient pose
-    ``(4, 4)``; camera poses ``X @ A_v``, ``rig``), each judged on the vessels the runs need at its own end
-    (:func:`_judged`); ``renderer`` renders the CTA as registered, ``views`` are the prepared runs. Both are weighed on the block grid of
+    """The tournament's result (judged on the vessels it read) against the mirrored CTA optimised from the networks'
+    ``estimate`` (a patient pose ``(4, 4)``; camera poses ``X @ A_v``, ``rig``) and judged on the vessels it read;
+    ``renderer`` renders the CTA as registered, ``views`` are the prepared runs. Both are weighed on the block grid of
     ``factors`` (i, j, k; default: the finest level the TTO rendered, :func:`work_factors`): a 0.5 mm CTA is mirrored at
     the TTO's 1 mm."""
     from .tto import test_time_optimise, tto_views  # PyTorch, only when the test runs
 
     (monitor or Monitor()).step("mirror", 0.0, "weighing the result against the CTA mirrored left-right")
-    work, shift = renderer.volume.coarsened(factors or work_factors(renderer.volume))
+    factors = factors or work_factors(renderer.volume)
+    work, shift = renderer.volume.coarsened(factors)
+    loss = tournament.objectives[tournament.chosen]
+    if work is not renderer.volume:  # the result judged again on the work grid, as its mirror image will be
+        selection = tournament.vessel_selection
+        judge = make_renderer(work if selection is None or not selection.applied else
+                              work.with_vessels(np.argwhere(coarse_mask(selection.keep, factors))), renderer.engine, device)
+        loss = pair_objective(judge, {k: shift @ T for k, T in tournament.result.poses.items()}, views, objective)
     plane = midsagittal_plane(work.cta)
     mirrored = mirrored_volume(work, plane)
     result = test_time_optimise(TorchRenderer(mirrored, device), tto_views(views, view_poses(shift @ estimate, rig)),
                                 TTOSchedule(MIRROR_TTO_ITERATIONS, coarse_fraction=MIRROR_COARSE_FRACTION,
                                             axis_search_at=MIRROR_AXIS_SEARCH_AT), objective=objective, rig=rig)
-    judged = {side: _judged(volume, poses, views, rig, objective, renderer.engine, device) for side, volume, poses in
-              (("result", work, {k: shift @ T for k, T in tournament.result.poses.items()}),
-               ("mirrored", mirrored, result.poses))}
-    return MirrorTest(judged["result"], judged["mirrored"], plane)
-
-
-def _judged(volume: RenderVolume, poses: Mapping[str, np.ndarray], views: Mapping[str, PreparedDSA],
-            rig: Mapping[str, np.ndarray], objective: Objective, engine: str, device: str) -> float:
-    """The objective (both views summed) of ``poses`` (``X @ rig[v]`` per view) on the vessels of ``volume`` the runs
-    need at that patient pose (``opacified.read_opacified``, fitted; all of them where too few pass)."""
-    key = next(iter(poses))
-    selection = read_opacified(volume, patient_pose(poses[key], rig[key]), rig,
-                               [(k, v.tto_vessels, v.tto_detector) for k, v in views.items()], start="judged", fitted=True)
-    judge = make_renderer(selection.volume if selection is not None and selection.applied else volume, engine, device)
-    return pair_objective(judge, poses, views, objective)
+    judge = selection_judge(make_renderer(mirrored, renderer.engine, device), result.vessel_selection)
+    return MirrorTest(loss, pair_objective(judge, result.poses, views, objective), plane)
 
 
 def work_factors(volume: RenderVolume) -> tuple[int, int, int]:

@@ -30,7 +30,6 @@ from ..geometry.poses import project_points
 from ..images import bilinear_sample, gaussian_blur
 from ..render.renderer import Renderer, make_renderer
 from ..render.volume import RenderVolume
-from .vessel_fit import explaining
 
 __all__ = ["OPACIFIED_BLUR_PX", "OPACIFIED_THRESHOLD", "OPACIFIED_MIN_FRACTION", "OPACIFIED_NEAR_MM", "VesselSelection",
            "read_opacified", "selection_judge", "vessel_shift_mm"]
@@ -100,12 +99,10 @@ def read_opacified(
     *,
     start: str = "",
     iteration: int = 0,
-    fitted: bool = False,
 ) -> VesselSelection | None:
     """The vessel voxels of ``volume`` that every view's vessel image shows at patient pose ``patient``
-    (``T_v = patient @ rig[v]``; ``views``: ``(name, vessel image (h, w), detector)``); ``fitted``: of those, only
-    the ones the images need there (``vessel_fit.explaining``). None when the CTA has no vessel voxels or no view a
-    vessel image (nothing to select by)."""
+    (``T_v = patient @ rig[v]``; ``views``: ``(name, vessel image (h, w), detector)``). None when the
+    CTA has no vessel voxels or no view a vessel image (nothing to select by)."""
     vessels = volume.mask("vessels")
     images = [(name, np.asarray(image, dtype=np.float64), det) for name, image, det in views if np.max(image) > 0]
     if vessels is None or not vessels.any() or not images:
@@ -113,16 +110,13 @@ def read_opacified(
     kji = volume.mask_voxels("vessels")
     points_mm = volume.centred_points(kji)
     shown = np.full(len(kji), np.inf)
-    pixels = []
     for name, image, det in images:
         smooth = gaussian_blur(image, (OPACIFIED_BLUR_PX, OPACIFIED_BLUR_PX))
         smooth /= max(float(smooth.max()), 1e-12)
-        pixels.append(project_points(np.asarray(patient, dtype=np.float64) @ rig[name], det, points_mm)[0])
-        shown = np.minimum(shown, bilinear_sample(smooth, pixels[-1][:, 0], pixels[-1][:, 1]))
+        pixels, _ = project_points(np.asarray(patient, dtype=np.float64) @ rig[name], det, points_mm)
+        shown = np.minimum(shown, bilinear_sample(smooth, pixels[:, 0], pixels[:, 1]))
     passed = shown >= OPACIFIED_THRESHOLD
     applied = passed.mean() >= OPACIFIED_MIN_FRACTION
-    if applied and fitted:
-        passed[passed] = explaining([at[passed] for at in pixels], [image for _, image, _ in images])
     kept = kji[passed] if applied else kji
     subset = volume.with_vessels(kept) if applied else None
     keep = subset.mask("vessels") if applied else vessels  # shared, not copied
