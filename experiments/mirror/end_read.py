@@ -39,9 +39,12 @@ def judged(volume, poses, views, rig, objective, engine, blur, thr):
     return pair_objective(judge, poses, views, objective), (sel.kept_fraction if sel else None)
 
 
-def main() -> None:
+def mirror_ends(description: str):
+    """Per held-out phantom and CTA (as given, then mirrored: the array flipped along the left-right axis, header kept)
+    registered as a user does: ``(case, name, reg, work, result poses on it, mirrored volume, its 12-step TTO's run,
+    prepared views, rig, objective)``, the mirror test's two ends rebuilt as ``register/mirror.py`` builds them."""
     models = load_models(runtime="torch")
-    for args, case, out in heldout_phantoms(__doc__.splitlines()[0], "6010-6029"):
+    for args, case, out in heldout_phantoms(description, "6010-6029"):
         axis = 2 - int(np.argmax(np.abs(case.cta.ijk_to_ras[0, :3]) / np.asarray(case.cta.spacing_mm)))
         for name, cta in (("correct", case.cta), ("mirrored", case.cta.like(np.ascontiguousarray(np.flip(case.cta.array, axis))))):
             reg = register_case(cta, case.runs, models=models)
@@ -58,12 +61,17 @@ def main() -> None:
             m = test_time_optimise(TorchRenderer(mvol, "cpu"), tto_views(views, view_poses(shift @ estimate, rig)),
                                    TTOSchedule(mirror.MIRROR_TTO_ITERATIONS, coarse_fraction=1.0, axis_search_at=(0.6,)),
                                    objective=objective, rig=rig)
-            row = {"case": case.name, "cta": name, "margin": r.mirror.margin}
-            for blur, thr in VARIANTS:
-                a, fa = judged(work, res_poses, views, rig, objective, reg.renderer.engine, blur, thr)
-                b, fb = judged(mvol, m.poses, views, rig, objective, reg.renderer.engine, blur, thr)
-                row[f"{blur}/{thr}"] = (b - a, fa, fb)
-            print(json.dumps(row), file=out, flush=True)
+            yield case, name, reg, work, res_poses, mvol, m, views, rig, objective, out
+
+
+def main() -> None:
+    for case, name, reg, work, res_poses, mvol, m, views, rig, objective, out in mirror_ends(__doc__.splitlines()[0]):
+        row = {"case": case.name, "cta": name, "margin": reg.registration.mirror.margin}
+        for blur, thr in VARIANTS:
+            a, fa = judged(work, res_poses, views, rig, objective, reg.renderer.engine, blur, thr)
+            b, fb = judged(mvol, m.poses, views, rig, objective, reg.renderer.engine, blur, thr)
+            row[f"{blur}/{thr}"] = (b - a, fa, fb)
+        print(json.dumps(row), file=out, flush=True)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,6 @@ selection (as ``register/continuation.py`` judges). One JSON line per validation
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -17,24 +16,17 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tto_schedule" / "turned_starts"))
-
-import heldout  # noqa: E402,F401  (geopose before torch)
+from selection_mlem import keeping, mlem_weights, pipeline_parser  # noqa: E402  (geopose before torch)
 import default_path_rows  # noqa: E402
 from default_path_rows import run_seeds  # noqa: E402
-from selection_mlem import mlem_weights  # noqa: E402
 
-from geopose.bench.cases import seed_range  # noqa: E402
 from geopose.options import TTOSchedule  # noqa: E402
 from geopose.register import opacified, pipeline, tto  # noqa: E402
 from geopose.register.biplane import nominal_poses, patient_pose  # noqa: E402
 from geopose.register.objective import pair_objective  # noqa: E402
 from geopose.register.tournament import Tournament, chosen_result  # noqa: E402
 
-ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-ap.add_argument("--blur", type=float, default=0.7)
-ap.add_argument("--share", type=float, default=0.05)
+ap = pipeline_parser(__doc__.splitlines()[0], 0.7)
 ap.add_argument("--iterations", type=int, default=25)
 ap.add_argument("--coarse", type=float, default=0.6)
 ap.add_argument("--axis", type=float, nargs="*", default=[0.6, 0.8])
@@ -42,8 +34,6 @@ ap.add_argument("--read-at-truth", action="store_true", help="oracle: the refit'
 ap.add_argument("--jitter-mm", type=float, default=0.0,
                 help="the fit's weights averaged over the read pose and its isocentre moved +-this along each axis")
 ap.add_argument("--rounds", type=int, default=1, help="refit runs, each reading at the last one's end")
-ap.add_argument("--seeds", type=seed_range, default=seed_range("6030-6049"))
-ap.add_argument("--out", required=True)
 args = ap.parse_args()
 info: dict = {}
 lenient_read = opacified.read_opacified
@@ -67,9 +57,7 @@ def fitted_read(volume, patient, rig, views, **kwargs):
         w = w + fit / np.percentile(fit, 90)
     kept = selection.kept_kji[w >= args.share * np.percentile(w, 90)]
     info["read"] = [len(selection.kept_kji), len(kept)]
-    subset = volume.with_vessels(kept)
-    return opacified.VesselSelection(subset.mask("vessels"), selection.vessel_voxels, len(kept), True,
-                                     selection.start, selection.iteration, selection.patient_pose, kept, subset)
+    return keeping(selection, volume, kept)
 
 
 original_continued = pipeline.continued

@@ -9,31 +9,20 @@ stays as it is). One JSON line per validation seed (``turned_starts/default_path
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tto_schedule" / "turned_starts"))
-
-import heldout  # noqa: E402,F401  (geopose before torch)
+from selection_mlem import pipeline_parser, thinned  # noqa: E402  (geopose before torch)
 from default_path_rows import run_seeds  # noqa: E402
-from selection_mlem import mlem_weights  # noqa: E402
 
-from geopose.bench.cases import seed_range  # noqa: E402
 from geopose.register import opacified, tto  # noqa: E402
 from geopose.render.renderer import TorchRenderer  # noqa: E402
 
-ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-ap.add_argument("--blur", type=float, default=0.7)
-ap.add_argument("--share", type=float, default=0.05)
-ap.add_argument("--shift", type=float, default=0.0)
+ap = pipeline_parser(__doc__.splitlines()[0], 0.7)
 ap.add_argument("--at", type=int, nargs="+", default=[15, 18, 21])
-ap.add_argument("--seeds", type=seed_range, default=seed_range("6030-6049"))
-ap.add_argument("--out", required=True)
 args = ap.parse_args()
 info: dict = {}
 
@@ -42,16 +31,11 @@ def fitted_read(run: tto.TTORun, patient: np.ndarray) -> opacified.VesselSelecti
     images = run.images
     views = [(v.name, v.vessels, v.detector) for v in images.views if images.vessel_term[v.name]]
     source = images.source_volume
-    selection = opacified.read_opacified(source, patient, run.rig, views, start="reread", iteration=run.it)
+    selection = thinned(source, patient, run.rig, views, args.blur, args.share, start="reread", iteration=run.it)
     if selection is None or not selection.applied:
         return None
-    shown = [(n, im, det) for n, im, det in views if np.max(im) > 0]
-    w = mlem_weights(source.centred_points(selection.kept_kji), patient, run.rig, shown, args.blur, shift_px=args.shift)
-    kept = selection.kept_kji[w >= args.share * np.percentile(w, 90)]
-    info.setdefault("rereads", []).append([run.it, len(selection.kept_kji), len(kept)])
-    subset = source.with_vessels(kept)
-    return opacified.VesselSelection(subset.mask("vessels"), selection.vessel_voxels, len(kept), True, "reread", run.it,
-                                     np.asarray(patient), kept, subset)
+    info.setdefault("rereads", []).append([run.it, selection.kept_voxels])
+    return selection
 
 
 original_advance = tto.TTORun.advance
@@ -79,4 +63,4 @@ def advance(self, until, monitor):
 
 tto.TTOImages.rebound = rebound
 tto.TTORun.advance = advance
-run_seeds(list(args.seeds), args.out, f"reread at {args.at} blur {args.blur} share {args.share} shift {args.shift}", info)
+run_seeds(list(args.seeds), args.out, f"reread at {args.at} blur {args.blur} share {args.share}", info)

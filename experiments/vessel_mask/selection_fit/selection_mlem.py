@@ -9,20 +9,33 @@ view, where the artery alone explains the image. One JSON line per seed (the "se
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tto_schedule" / "turned_starts"))  # default_path_rows
 
 from selection_oracle import ARTERIES, L, OracleRead, VEINS, drift_rows  # noqa: E402
 
+from geopose.bench.cases import seed_range  # noqa: E402
 from geopose.geometry.poses import project_points  # noqa: E402
 from geopose.images import gaussian_blur  # noqa: E402
 from geopose.register import opacified  # noqa: E402
 
 ITERATIONS = 30
+
+
+def pipeline_parser(description: str, blur_px: float) -> argparse.ArgumentParser:
+    """The pipeline variants' shared options: the fit's ``--blur`` (px) and ``--share``, ``--seeds``, ``--out``."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--blur", type=float, default=blur_px)
+    ap.add_argument("--share", type=float, default=0.05)
+    ap.add_argument("--seeds", type=seed_range, default=seed_range("6030-6049"))
+    ap.add_argument("--out", required=True)
+    return ap
 
 
 def splats(pixels: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -92,6 +105,24 @@ def _back(image: np.ndarray, idx: np.ndarray, wts: np.ndarray, blur_px: float) -
     return (image.ravel()[idx] * wts).sum(1)
 
 
+def keeping(selection: opacified.VesselSelection, volume, kept: np.ndarray) -> opacified.VesselSelection:
+    """``selection`` (as read) with only the voxels ``kept`` (``[k, j, i]`` rows) in its vessel channel."""
+    subset = volume.with_vessels(kept)
+    return opacified.VesselSelection(subset.mask("vessels"), selection.vessel_voxels, len(kept), True, selection.start,
+                                     selection.iteration, selection.patient_pose, kept, subset)
+
+
+def thinned(volume, patient, rig, views, blur_px: float, share: float, **kwargs) -> opacified.VesselSelection | None:
+    """The opacified read at ``patient`` (``opacified.read_opacified``), thinned to the voxels whose MLEM weight reaches
+    ``share`` of the 90th percentile; as read where it was not applied."""
+    selection = opacified.read_opacified(volume, patient, rig, views, **kwargs)
+    if selection is None or not selection.applied:
+        return selection
+    images = [(n, im, det) for n, im, det in views if np.max(im) > 0]
+    w = mlem_weights(volume.centred_points(selection.kept_kji), patient, rig, images, blur_px)
+    return keeping(selection, volume, selection.kept_kji[w >= share * np.percentile(w, 90)])
+
+
 class FittedRead(OracleRead):
     """The default read, then the MLEM fit keeps the voxels with weight >= ``share`` x the 90th percentile."""
 
@@ -115,9 +146,7 @@ class FittedRead(OracleRead):
                             int((lab == L.VENOUS_SINUS).sum()), "veins inside the cranium":
                             int((lab == L.VENOUS_SINUS + L.INTRACRANIAL_OFFSET).sum()),
                             "other": int((~np.isin(lab, ARTERIES + VEINS)).sum())}
-        subset = volume.with_vessels(kept)
-        return opacified.VesselSelection(subset.mask("vessels"), selection.vessel_voxels, len(kept), True,
-                                         selection.start, selection.iteration, selection.patient_pose, kept, subset)
+        return keeping(selection, volume, kept)
 
 
 def fitting(share: float | None, blur_px: float = 1.0):

@@ -8,43 +8,27 @@ with ``experiments/tto_schedule/turned_starts/compare.py``.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tto_schedule" / "turned_starts"))
-
-import heldout  # noqa: E402,F401  (geopose before torch)
+from selection_mlem import pipeline_parser, thinned  # noqa: E402  (geopose before torch)
 from default_path_rows import run_seeds  # noqa: E402
-from selection_mlem import mlem_weights  # noqa: E402
 
-from geopose.bench.cases import seed_range  # noqa: E402
-from geopose.register import opacified, tto  # noqa: E402
+from geopose.register import tto  # noqa: E402
 
-ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-ap.add_argument("--blur", type=float, default=2.0)
-ap.add_argument("--share", type=float, default=0.05)
-ap.add_argument("--seeds", type=seed_range, default=seed_range("6030-6049"))
-ap.add_argument("--out", required=True)
+ap = pipeline_parser(__doc__.splitlines()[0], 2.0)
 args = ap.parse_args()
 info: dict = {}
 
 
 def fitted_read(volume, patient, rig, views, **kwargs):
-    selection = opacified.read_opacified(volume, patient, rig, views, **kwargs)
-    if selection is None or not selection.applied:
-        return selection
-    images = [(n, im, det) for n, im, det in views if np.max(im) > 0]
-    w = mlem_weights(volume.centred_points(selection.kept_kji), patient, rig, images, args.blur)
-    kept = selection.kept_kji[w >= args.share * np.percentile(w, 90)]
-    info.setdefault("reads", []).append([len(selection.kept_kji), len(kept)])
-    subset = volume.with_vessels(kept)
-    return opacified.VesselSelection(subset.mask("vessels"), selection.vessel_voxels, len(kept), True,
-                                     selection.start, selection.iteration, selection.patient_pose, kept, subset)
+    selection = thinned(volume, patient, rig, views, args.blur, args.share, **kwargs)
+    if selection is not None and selection.applied:
+        info.setdefault("reads", []).append(selection.kept_voxels)
+    return selection
 
 
 tto.read_opacified = fitted_read
