@@ -47,15 +47,17 @@ def reference_plane(cta) -> S.Midplane:
 
 
 def row(name: str, cta) -> dict:
-    out = {"case": name}
+    """Both searches' planes of ``cta`` and seconds; ``offset_mm``: how far along its normal each plane lies from the
+    reference plane's point (0 for the reference)."""
+    out, reference = {"case": name}, None
     for label, search in (("reference", reference_plane), ("product", S.midsagittal_plane)):
         t0 = time.perf_counter()
         plane = search(cta)
+        seconds = time.perf_counter() - t0
+        reference = reference or plane
         out[label] = {"yaw_deg": plane.yaw_deg, "roll_deg": plane.roll_deg, "ncc": round(plane.symmetry_ncc, 5),
-                      "offset_mm": round(float((plane.point_lps_mm - out.get("_point", plane.point_lps_mm)) @ plane.normal_lps), 3),
-                      "s": round(time.perf_counter() - t0, 3)}
-        out["_point"] = plane.point_lps_mm
-    out.pop("_point")
+                      "offset_mm": round(float((plane.point_lps_mm - reference.point_lps_mm) @ plane.normal_lps), 3),
+                      "s": round(seconds, 3)}
     return out
 
 

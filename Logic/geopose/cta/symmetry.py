@@ -30,9 +30,9 @@ MAX_TILT_DEG = 15.0
 SYMMETRY_WINDOW_HU = (-200.0, 1600.0)
 BODY_HU = -100.0
 #: Coarse search step (deg) on the coarse grid, then the refinements' steps (deg for the angles, mm for the shift along
-#: the normal) on the fine grid, each trying one step either way on all three (27 planes). 49 + 81 resamples; the search
-#: of 2.5-deg coarse steps and two 5 x 5 x 3 refinements (319) found planes within 0.5 deg of it on 22 validation and
-#: real-head CTAs, in half the time (experiments/mirror/plane_search.md).
+#: the normal) on the fine grid, each trying one step either way on all three (27 planes): 49 + 81 resamples. On 22
+#: validation and real-head CTAs it found planes within 0.5 deg of the earlier search's (2.5-deg coarse steps, two
+#: 5 x 5 x 3 refinements: 319 resamples) in half the time (experiments/mirror/plane_search.md).
 COARSE_STEP_DEG = 5.0
 REFINE_STEPS = (2.5, 1.0, 0.5)
 
