@@ -53,6 +53,38 @@ def test_cta_cranium_and_vessel_masks_match_phantom_truth(subject):
     assert scores["precision"] > 0.22
 
 
+def test_vessel_mask_on_the_body_box_is_the_whole_grid_mask(subject):
+    """The vessel rule runs on a box around the body: voxel for voxel what it gives on the whole grid, also where
+    the body reaches the grid's edge (a grid cut through the head)."""
+    from geopose.cta import masks
+
+    axis, spacing = masks._superior_array_axis(subject.cta), subject.cta.spacing_mm
+    hu = np.asarray(subject.cta.array, np.float32)
+    for grid in (hu, hu[:, 20:, 10:-6]):
+        body = masks.sitk.GetArrayFromImage(masks._largest_component(
+            masks.sitk.GetImageFromArray((grid > masks.BODY_HU).astype(np.uint8)))).astype(bool)
+        whole, whole_span = masks._vessel_mask_in_body(grid, body, spacing, axis)
+        boxed, boxed_span = masks._vessel_mask(grid, spacing, axis)
+        assert whole.sum() > 1000 and np.array_equal(boxed, whole) and boxed_span == whole_span
+    assert np.prod([b.stop - b.start for b in masks._body_box(hu > masks.BODY_HU, spacing)]) < 0.8 * hu.size
+
+
+def test_vessel_mask_on_the_body_box_keeps_the_skin_margin():
+    """A lumen 2-3 mm under the body's outermost face is skin-deep on the whole grid and stays out on the body's
+    box (which must reach past the body for that); one 10 mm deep is a vessel on both."""
+    from geopose.cta import masks
+
+    hu = np.full((60, 60, 60), -1000.0, np.float32)
+    hu[10:50, 10:50, 10:50] = 40.0
+    hu[29:31, 12:14, 15:45] = 300.0  # under the face at j = 10
+    hu[29:31, 20:22, 15:45] = 300.0  # deep
+    body = hu > masks.BODY_HU
+    whole, _ = masks._vessel_mask_in_body(hu, body, (1.0, 1.0, 1.0), 0)
+    boxed, _ = masks._vessel_mask(hu, (1.0, 1.0, 1.0), 0)
+    assert np.array_equal(boxed, whole)
+    assert whole[29:31, 20:22, 15:45].all() and whole.sum() == 2 * 2 * 30
+
+
 def test_dsa_cranium_mask_matches_projected_cranium(subject):
     rng = np.random.default_rng(4)
     drr = dsa_renderer(subject, "cca_left")

@@ -50,6 +50,11 @@ AIR_MARGIN_MM = 3.0
 VESSEL_WORK_SPACING_MM = 1.0
 #: Vessel components smaller than this (mm^3) are dropped as noise.
 MIN_VESSEL_COMPONENT_MM3 = 10.0
+#: The vessel mask is worked out on the body's box grown by this (mm): past the body surface margin and the air and
+#: bone margins, which then see the background they see on the whole grid, and 5 sigmas of the canal filter's
+#: smoothing (:data:`CANAL_SIGMA_MM`). The masks were voxel for voxel those of the whole grid on the 1 mm demo
+#: phantom, 25 validation phantoms and the real heads, with a margin down to 4 mm.
+BODY_BOX_MARGIN_MM = 8.0
 
 
 def _radius_vox(radius_mm: float, spacing_mm: tuple[float, float, float]) -> list[int]:
@@ -231,8 +236,32 @@ def _small_holes_slicewise(mask: np.ndarray, axis: int, max_voxels: float) -> np
 def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, float]:
     """The rule of :func:`vessel_mask_from_cta` on one grid: ``a`` HU ``[k, j, i]``, voxel sizes
     ``spacing_mm`` (i, j, k), ``axis`` the superior array axis; uint8 {0, 1} mask and the longest extent
-    (mm) of one of its components along ``axis``."""
+    (mm) of one of its components along ``axis``. Every vessel lies in the body, so the work after finding the body
+    is done on the body's box (:func:`_body_box`): on the 1 mm demo phantom 2.1 s instead of 3.9 s."""
     body = sitk.GetArrayFromImage(_largest_component(sitk.GetImageFromArray((a > BODY_HU).astype(np.uint8)))).astype(bool)
+    box = _body_box(body, spacing_mm)
+    mask = np.zeros(a.shape, np.uint8)
+    mask[box], span_mm = _vessel_mask_in_body(a[box], body[box], spacing_mm, axis)
+    return mask, span_mm
+
+
+def _body_box(body: np.ndarray, spacing_mm) -> tuple[slice, slice, slice]:
+    """The index box ([k, j, i] slices) of ``body`` grown by :data:`BODY_BOX_MARGIN_MM` (past every margin the mask
+    rule measures from outside the body, and the canal filter's reach), its start a whole number of the canal grid's
+    blocks (:func:`_dark_tubes` then sees the blocks the whole grid has), clipped to the grid."""
+    box = []
+    for axis, n in enumerate(body.shape):
+        s = float(spacing_mm[2 - axis])
+        block, grow = max(1, round(CANAL_GRID_MM / s)), int(np.ceil(BODY_BOX_MARGIN_MM / s))
+        present = np.flatnonzero(body.any(axis=tuple(x for x in range(body.ndim) if x != axis)))
+        lo, hi = (int(present[0]), int(present[-1]) + 1) if len(present) else (0, n)
+        box.append(slice(max(0, (lo - grow) // block * block), min(n, hi + grow)))
+    return tuple(box)
+
+
+def _vessel_mask_in_body(a: np.ndarray, body: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, float]:
+    """:func:`_vessel_mask` on a box around the body: ``a`` HU and ``body`` (bool, the largest component above
+    :data:`BODY_HU`) on it."""
     body = _fill_slicewise(body, axis).astype(bool)
     # air inside the head (nasal cavity, paranasal sinuses, pharynx): its thin bony walls blur into the lumen range
     near_air = _dilate_mm(body & (a < BODY_HU), AIR_MARGIN_MM, spacing_mm)
