@@ -6,6 +6,8 @@ DRR label channels and for evaluation on phantoms, not for diagnosis.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 import SimpleITK as sitk
 
@@ -177,9 +179,27 @@ def vessel_mask_from_cta(volume: Volume) -> Volume:
 
 
 def _dilate_mm(mask: np.ndarray, radius_mm: float, spacing_mm) -> np.ndarray:
-    """``mask`` ([k, j, i] bool) dilated by a ball of ``radius_mm`` (per-axis radius from ``spacing_mm``, i, j, k)."""
-    image = sitk.GetImageFromArray(mask.astype(np.uint8))
-    return sitk.GetArrayFromImage(sitk.BinaryDilate(image, _radius_vox(radius_mm, spacing_mm), sitk.sitkBall)).astype(bool)
+    """``mask`` ([k, j, i] bool) dilated by a ball of ``radius_mm`` (per-axis radius from ``spacing_mm``, i, j, k),
+    worked out on the mask's box grown by the radius (the air inside a head fills a small part of it)."""
+    radius = _radius_vox(radius_mm, spacing_mm)
+    out = np.zeros(mask.shape, dtype=bool)
+    box = _grown_box(mask, radius[::-1])
+    if box is not None:
+        image = sitk.GetImageFromArray(mask[box].astype(np.uint8))
+        out[box] = sitk.GetArrayFromImage(sitk.BinaryDilate(image, radius, sitk.sitkBall)) > 0
+    return out
+
+
+def _grown_box(mask: np.ndarray, grow: Sequence[int], block: Sequence[int] = (1, 1, 1)) -> tuple[slice, ...] | None:
+    """The index box ([k, j, i] slices) of ``mask``'s voxels grown by ``grow`` voxels per array axis and clipped to the
+    grid, each start a whole number of ``block`` voxels; None when the mask is empty."""
+    box = []
+    for axis, (n, g, b) in enumerate(zip(mask.shape, grow, block)):
+        present = np.flatnonzero(mask.any(axis=tuple(x for x in range(mask.ndim) if x != axis)))
+        if not len(present):
+            return None
+        box.append(slice(max(0, int(present[0]) - g) // b * b, min(n, int(present[-1]) + 1 + g)))
+    return tuple(box)
 
 
 def _eroded_by_ball(mask: np.ndarray, radius_vox: list[int]) -> np.ndarray:
@@ -245,18 +265,14 @@ def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, floa
     return mask, span_mm
 
 
-def _body_box(body: np.ndarray, spacing_mm) -> tuple[slice, slice, slice]:
+def _body_box(body: np.ndarray, spacing_mm) -> tuple[slice, ...]:
     """The index box ([k, j, i] slices) of ``body`` grown by :data:`BODY_BOX_MARGIN_MM` (past every margin the mask
     rule measures from outside the body, and the canal filter's reach), its start a whole number of the canal grid's
-    blocks (:func:`_dark_tubes` then sees the blocks the whole grid has), clipped to the grid."""
-    box = []
-    for axis, n in enumerate(body.shape):
-        s = float(spacing_mm[2 - axis])
-        block, grow = max(1, round(CANAL_GRID_MM / s)), int(np.ceil(BODY_BOX_MARGIN_MM / s))
-        present = np.flatnonzero(body.any(axis=tuple(x for x in range(body.ndim) if x != axis)))
-        lo, hi = (int(present[0]), int(present[-1]) + 1) if len(present) else (0, n)
-        box.append(slice(max(0, (lo - grow) // block * block), min(n, hi + grow)))
-    return tuple(box)
+    blocks (:func:`_dark_tubes` then sees the blocks the whole grid has); the whole grid when there is no body."""
+    steps = [float(spacing_mm[2 - axis]) for axis in range(body.ndim)]
+    box = _grown_box(body, [int(np.ceil(BODY_BOX_MARGIN_MM / s)) for s in steps],
+                     [max(1, round(CANAL_GRID_MM / s)) for s in steps])
+    return box if box is not None else tuple(slice(0, n) for n in body.shape)
 
 
 def _vessel_mask_in_body(a: np.ndarray, body: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, float]:
