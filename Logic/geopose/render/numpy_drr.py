@@ -66,31 +66,37 @@ class NumpyKernel:
 
         def run(b: tuple[int, int]) -> None:
             i0, i1 = b
-            pts = start[i0:i1, None, :] + span[i0:i1, None, :] * frac[:, None]  # (N, n, 3) ijk
-            sums[:, i0:i1] = self._trilinear(pts.reshape(-1, 3), values).reshape(len(values), i1 - i0, n).sum(-1)
+            ijk = [(start[i0:i1, a, None] + span[i0:i1, a, None] * frac).ravel() for a in range(3)]  # (N n,) per axis
+            sums[:, i0:i1] = self._trilinear(ijk, values).reshape(len(values), i1 - i0, n).sum(-1)
 
         list(self._pool.map(run, bounds))
         return (sums * (chord_mm / n).astype(np.float32)).reshape(len(channels), H, W)
 
-    def _trilinear(self, ijk: np.ndarray, values: list[np.ndarray]) -> np.ndarray:
-        """``(C', N)`` trilinear samples at continuous indices ``(N, 3)`` in the box ``[-0.5, n - 0.5]``
-        (points of rays that miss the box are clamped to it; their chord, and weight, is 0)."""
-        base = np.floor(ijk)
-        f = ijk - base
-        base = np.clip(base, -1, np.asarray(self.shape_ijk) - 1).astype(np.int64) + 1
-        flat = base[:, 0] + base[:, 1] * self._row + base[:, 2] * self._plane
-        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-        out = np.empty((len(values), len(ijk)), dtype=np.float32)
+    def _trilinear(self, ijk: list[np.ndarray], values: list[np.ndarray]) -> np.ndarray:
+        """``(C', N)`` trilinear samples at continuous indices (i, j, k: three ``(N,)`` arrays) in the box
+        ``[-0.5, n - 0.5]`` (points of rays that miss the box are clamped to it; their chord, and weight, is 0).
+        One contiguous array per axis and each corner gathered once: about 2x faster than one ``(N, 3)`` array."""
+        flat, weights = 0, []
+        for x, n, stride in zip(ijk, self.shape_ijk, (1, self._row, self._plane)):
+            base = np.floor(x)
+            weights.append(x - base)
+            flat = flat + (np.clip(base, -1, n - 1).astype(np.int64) + 1) * stride
+        fx, fy, fz = weights
         r, p = self._row, self._plane
-        for c, v in enumerate(values):
-            c00 = v[flat] + fx * (v[flat + 1] - v[flat])
-            c10 = v[flat + r] + fx * (v[flat + r + 1] - v[flat + r])
-            c01 = v[flat + p] + fx * (v[flat + p + 1] - v[flat + p])
-            c11 = v[flat + p + r] + fx * (v[flat + p + r + 1] - v[flat + p + r])
-            c0 = c00 + fy * (c10 - c00)
-            c1 = c01 + fy * (c11 - c01)
-            out[c] = c0 + fz * (c1 - c0)
+        out = np.empty((len(values), len(flat)), dtype=np.float32)
+        for c, v in enumerate(values):  # corner (di, dj, dk) is element flat of v shifted by di + dj r + dk p
+            v000, v100, v010, v110, v001, v101, v011, v111 = (
+                np.take(v[offset:], flat) for offset in (0, 1, r, r + 1, p, p + 1, p + r, p + r + 1))
+            c00, c10, c01, c11 = (_lerp(a, b, fx) for a, b in ((v000, v100), (v010, v110), (v001, v101), (v011, v111)))
+            out[c] = _lerp(_lerp(c00, c10, fy), _lerp(c01, c11, fy), fz)
         return out
+
+
+def _lerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``a + t (b - a)``, in ``b``'s memory (a gathered temporary)."""
+    np.subtract(b, a, out=b)
+    np.multiply(b, t, out=b)
+    return np.add(b, a, out=b)
 
 
 def _clip_to_box(s: np.ndarray, seg: np.ndarray, shape_ijk: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
