@@ -29,7 +29,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from conventions_common import (  # noqa: E402
@@ -43,6 +42,7 @@ from geopose.geometry import (  # noqa: E402
     CArmAngles, Detector, RigidTransform, isopose, pose_from_carm_angles, project_points, project_points_tensor,
 )
 from geopose.render import DRR  # noqa: E402
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 SHARED = REPO.parent / "shared" / "data"
 VIEWS = (C.VIEW_LAT_MINUS, C.VIEW_PA, C.VIEW_LAT_PLUS)

@@ -25,11 +25,10 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import torch
-
 import renderer_common as rc
 from geopose.geometry import RigidTransform
 from geopose.render import DRR
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 DEFAULT_STEPS_MM = (0.45, 0.9, 1.35)
 

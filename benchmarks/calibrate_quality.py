@@ -18,8 +18,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
 
 from geopose.bench.cases import ge_head_case, headsq_case, phantom_case, seed_range, training_seeds  # noqa: E402
@@ -29,6 +27,7 @@ from geopose.register.evaluate import evaluate_pose  # noqa: E402
 from geopose.register.pipeline import register_case  # noqa: E402
 from geopose.register.trust import stage_agreement  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 
 def view_rows(case, reg) -> list[dict]:

@@ -27,11 +27,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 import renderer_common as rc
 from geopose.geometry import RigidTransform, project_points_tensor
 from geopose.render import DRR, hu_to_density
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 NCC_TARGET = 0.995
 POINT_TOLERANCE_PX = 0.5

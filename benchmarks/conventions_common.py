@@ -14,7 +14,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 REPO = Path(__file__).resolve().parents[1]
 try:
@@ -25,6 +24,7 @@ except ImportError:  # a bare machine: use the checkout's sources
 from geopose.geometry import CArmAngles, Detector  # noqa: E402
 from geopose.render import DRR  # noqa: E402
 from geopose.volume import Volume  # noqa: E402
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 #: Teeth: the densest tissue of a head CT (enamel, fillings), HU.
 TEETH_HU = 2000.0

@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 REPO = Path(__file__).resolve().parents[1]
 try:
@@ -24,6 +23,7 @@ except ImportError:  # a bare GPU machine: use the checkout's sources
 from geopose import contract as C  # noqa: E402
 from geopose.geometry import Detector, RigidTransform  # noqa: E402
 from geopose.volume import Volume  # noqa: E402
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 HEADSQ_HEADER = REPO.parent / "shared" / "data" / "headsq" / "quarter_sidecar.mhd"
 

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from dense_runs import write_dense_phantom  # noqa: E402
@@ -42,6 +41,7 @@ from geopose.register.case import prepare_case, silhouette_dice  # noqa: E402
 from geopose.render.renderer import TorchRenderer  # noqa: E402
 from geopose.render.volume import RenderVolume  # noqa: E402
 from geopose.volume import Volume  # noqa: E402
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 #: ``simulate_dsa``'s cranium_mask: the projected path above this fraction of its maximum.
 TRUTH_FRACTION = 0.02

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Logic"))
 
@@ -27,6 +26,7 @@ from geopose.phantom import labels as L  # noqa: E402
 from geopose.phantom.cli import _write_volume  # noqa: E402
 from geopose.phantom.dsa import dsa_renderer, sample_biplane, sample_injection, simulate_dsa  # noqa: E402
 from geopose.phantom.subject import Subject, make_subject  # noqa: E402
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 #: Contrast of the dense runs' vessels against the phantom world's (``simulate_dsa``'s vessel gain).
 DENSE_VESSEL_GAIN = 5.0

@@ -25,7 +25,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Logic"))
 
@@ -40,6 +39,7 @@ from geopose.register.opacified import read_opacified  # noqa: E402
 from geopose.register.tto import tto_views  # noqa: E402
 from geopose.register.tto import TTOSchedule, TTOView, test_time_optimise  # noqa: E402
 from geopose.render.renderer import TorchRenderer  # noqa: E402
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 #: Columns of the table: which target images are the runs' own and which the noise-free DRR's.
 VARIANTS = ("the runs' images (default)", "noise-free silhouette", "noise-free vessels", "both noise-free")

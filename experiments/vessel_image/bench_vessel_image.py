@@ -18,7 +18,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -30,6 +29,7 @@ from geopose.cta import load_cta  # noqa: E402
 from geopose.dsa.preprocess import bolus_weighted_mean, preprocess_dsa, vessel_image  # noqa: E402
 from geopose.metrics.similarity import ncc  # noqa: E402
 from geopose.render.drr import DRR  # noqa: E402
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 WEIGHTINGS = ("detail", "plain frames", "mean")
 

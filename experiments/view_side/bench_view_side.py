@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # experiments/: heldout.py
 from heldout import parse_heldout_args, publish  # noqa: E402  (puts Logic/ on sys.path)
@@ -27,6 +26,7 @@ from geopose.nets import load_models  # noqa: E402
 from geopose.dsa import preprocess_dsa  # noqa: E402
 from geopose.options import TTO_PX_CPU  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
+import torch  # noqa: E402  after geopose, which sets OMP_WAIT_POLICY first
 
 
 def side_margins(init, target: np.ndarray) -> tuple[float, float]:
