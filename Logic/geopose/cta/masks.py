@@ -257,7 +257,8 @@ def _vessel_mask(a: np.ndarray, spacing_mm, axis: int) -> tuple[np.ndarray, floa
     """The rule of :func:`vessel_mask_from_cta` on one grid: ``a`` HU ``[k, j, i]``, voxel sizes
     ``spacing_mm`` (i, j, k), ``axis`` the superior array axis; uint8 {0, 1} mask and the longest extent
     (mm) of one of its components along ``axis``. Every vessel lies in the body, so the work after finding the body
-    is done on the body's box (:func:`_body_box`): on the 1 mm demo phantom 2.4 s instead of 3.7 s."""
+    is done on the body's box (:func:`_body_box`): on the 1 mm demo phantom 2.4 s instead of 3.7 s (1.9 s with each
+    dilation on its own box, :func:`_dilate_mm`)."""
     body = sitk.GetArrayFromImage(_largest_component(sitk.GetImageFromArray((a > BODY_HU).astype(np.uint8)))).astype(bool)
     box = _body_box(body, spacing_mm)
     mask = np.zeros(a.shape, np.uint8)
