@@ -69,6 +69,21 @@ def test_vessel_mask_on_the_body_box_is_the_whole_grid_mask(subject):
     assert np.prod([b.stop - b.start for b in masks._body_box(hu > masks.BODY_HU, spacing)]) < 0.8 * hu.size
 
 
+def test_cranium_mask_on_the_bone_box_is_the_whole_grid_mask(subject, monkeypatch):
+    """The cranium rule runs on the bone's box: the same mask as on the whole grid, also on a grid cut through the
+    head (bone at its edges)."""
+    from geopose.cta import masks
+
+    from geopose.volume import Volume
+
+    cut = Volume(np.ascontiguousarray(np.asarray(subject.cta.array)[:, 24:, 10:-6]), subject.cta.ijk_to_ras)
+    boxed = [masks.cranium_mask_from_cta(cta).array for cta in (subject.cta, cut)]
+    monkeypatch.setattr(masks, "_grown_box", lambda mask, grow, block=(1, 1, 1): tuple(slice(0, n) for n in mask.shape))
+    whole = [masks.cranium_mask_from_cta(cta).array for cta in (subject.cta, cut)]
+    for a, b in zip(boxed, whole):
+        assert b.sum() > 10000 and np.array_equal(a, b)
+
+
 def test_vessel_mask_on_the_body_box_keeps_the_skin_margin():
     """A lumen 2-3 mm under the body's outermost face is skin-deep on the whole grid and stays out on the body's
     box (which must reach past the body for that); one 10 mm deep is a vessel on both."""

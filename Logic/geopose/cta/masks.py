@@ -135,12 +135,17 @@ def cranium_mask_from_cta(volume: Volume, *, bone_hu: float = C.HU_BONE_MIN) -> 
         raise InputError(f"no voxel above {bone_hu:g} HU: the CTA shows no bone, so no cranium mask can be derived; supply a mask")
     work = volume.shrunk(_work_factors(volume, WORK_SPACING_MM))
     radius = _radius_vox(CLOSING_RADIUS_MM, work.spacing_mm)
-    closed = _closed_by_ball(np.asarray(work.array) > bone_hu, radius)
+    bone = np.asarray(work.array) > bone_hu
+    # the steps below on the bone's box grown past the closing's reach: every slice's rim stays outside the head
+    box = _grown_box(bone, [r + 1 for r in radius[::-1]])
+    closed = _closed_by_ball(bone[box], radius)
     skull = sitk.GetArrayFromImage(_largest_component(sitk.GetImageFromArray(closed.astype(np.uint8)))).astype(bool)
     axis = _superior_array_axis(volume)
     bridged = _closed_along(_fill_slicewise(skull, axis).astype(bool), axis, radius[2 - axis])
     cranium = _largest_component(sitk.BinaryFillhole(sitk.GetImageFromArray(bridged.astype(np.uint8)), fullyConnected=False))
-    out = _back_to_full(work.like(sitk.GetArrayFromImage(cranium)), volume)
+    mask = np.zeros(bone.shape, np.uint8)
+    mask[box] = sitk.GetArrayFromImage(cranium)
+    out = _back_to_full(work.like(mask), volume)
     return volume.like(out, kind="cranium_mask", method="bone threshold + closing + largest component + axial fill")
 
 
