@@ -182,3 +182,27 @@ def test_one_cycle_nadam_takes_a_warm_up_of_one_step():
     (w - 1.0).square().sum().backward()
     opt.step()
     assert torch.all(w > 0)
+
+
+def test_a_run_renders_each_seen_pose_once_per_objective(phantom_case):
+    """A patient-pose run scores its start when it first compares it (a read at the start changes the objective
+    first), and an objective that has scored a full-size pose is not rendered again for it: judging twice renders
+    nothing the second time, and another objective renders every pose once, to the same numbers."""
+    from geopose.register.progress import Monitor
+    from geopose.register.tto import TTOImages, TTORun
+    from geopose.render.work import counting
+
+    truth, runs, prep, renderer = _prepared(phantom_case)
+    rig = nominal_poses(runs)
+    images = TTOImages(renderer, tto_views(prep.views, truth.poses), Objective())
+    with counting() as work:
+        run = TTORun(images, {k: _perturb(p) for k, p in truth.poses.items()}, TTOSchedule(iterations=5), rig, False, "cpu")
+    assert work.renders == 0 and run.start_pending
+    run.advance(run.coarse + 1, Monitor())  # the coarse steps and the first full-size evaluation
+    assert [it for _, it, _ in run.seen] == [0, run.coarse] and not run.start_pending and "patient" in run.best
+    with counting() as work:
+        judged = run.best_loss_by(images)
+    assert work.renders == 0
+    with counting() as work:
+        again = run.best_loss_by(images.rebound(renderer))
+    assert work.renders == 2 * len(run.seen) and again == judged

@@ -283,14 +283,22 @@ class TTORun:
         self.searches = (schedule.axis_search_iterations() if self.joint and self.params.prior_axis is not None
                          else set())
         # best[...] = (objective loss, per-view mNCC, per-view pose, iteration, prior); one entry for a patient
-        # pose, whose full-size evaluations are kept in ``seen`` (poses, iteration, prior) to be scored again
+        # pose, whose full-size evaluations are kept in ``seen`` (poses, iteration, prior) to be scored again, and
+        # their terms by the images that scored them in ``scored`` (index in seen -> [(images, terms)])
         self.best: dict = {}
         self.seen: list[tuple[dict, int, float]] = []
+        self.scored: dict[int, list[tuple[TTOImages, dict]]] = {}
         self.trace: list[dict] = []
         self.axis_searches: list[dict] = []
         self.vessel_selection: VesselSelection | None = None
         self.it = 0
-        if self.coarse > 0:  # the start, scored at full size (the coarse steps are not compared with it)
+        self.start_pending = False
+        if self.coarse > 0 and self.joint:  # the start, scored at full size when first compared (the coarse steps are
+            # not compared with it), by the images the run holds then: a read at the start changes them first
+            self.seen.append(({k: p.detach()[0].cpu().numpy() for k, p in self.params.poses().items()}, 0,
+                              float(self.params.rotation_prior().detach())))
+            self.start_pending = True
+        elif self.coarse > 0:
             with torch.no_grad():
                 _, losses, current = self._evaluate("full")
             self._record_best(losses, current, 0)
@@ -325,8 +333,10 @@ class TTORun:
 
     def _record_best(self, losses: dict, poses: dict, it: int) -> None:
         if self.joint:
+            self._score_start()
             prior = float(self.params.rotation_prior().detach())
             self.seen.append((poses, it, prior))
+            self.scored[len(self.seen) - 1] = [(self.images, {k: list(v[:2]) for k, v in losses.items()})]
             self._consider("patient", sum(v[0] for v in losses.values()) + prior, {k: v[1] for k, v in losses.items()},
                            poses, it, prior)
         else:  # per view; the paper keeps the pose of best mNCC
@@ -338,21 +348,35 @@ class TTORun:
         """The patient pose ``(4, 4)`` this run evaluated at iteration ``it`` (a patient-pose run)."""
         return traced_patient_pose(self.trace, self.rig, it)
 
-    def _seen_losses(self, images: TTOImages):
-        """Per full-size patient pose seen so far: (poses, iteration, prior, per view ``images.loss`` terms as floats)."""
+    def _seen_losses(self, images: TTOImages, count: int | None = None):
+        """Per full-size patient pose seen so far (the first ``count``): (poses, iteration, prior, per view
+        ``images.loss`` terms (loss, mNCC) as floats), rendered where ``images`` have not scored it yet."""
         import torch
 
-        with torch.no_grad():
-            for poses, it, prior in self.seen:
-                yield poses, it, prior, {k: [float(v) for v in images.loss(
-                    k, torch.as_tensor(poses[k], dtype=torch.float64, device=self.device)[None], "full")[:2]]
-                    for k in self.names}
+        for index, (poses, it, prior) in enumerate(self.seen[:count]):
+            terms = next((t for by, t in self.scored.get(index, ()) if by is images), None)
+            if terms is None:
+                with torch.no_grad():
+                    terms = {k: [float(v) for v in images.loss(
+                        k, torch.as_tensor(poses[k], dtype=torch.float64, device=self.device)[None], "full")[:2]]
+                        for k in self.names}
+                self.scored.setdefault(index, []).append((images, terms))
+            yield poses, it, prior, terms
+
+    def _score_start(self) -> None:
+        """Score the start (a patient-pose run's first seen pose) if it waits to be."""
+        if self.start_pending:
+            self.start_pending = False
+            for poses, it, prior, losses in self._seen_losses(self.images, 1):
+                self._consider("patient", sum(v[0] for v in losses.values()) + prior,
+                               {k: v[1] for k, v in losses.items()}, poses, it, prior)
 
     def rescore_best(self) -> None:
         """Score the full-size patient poses seen so far again with the objective the images hold now
         (their vessel channel changed) and keep the best, so that later iterations are compared with
         them on equal terms."""
         self.best.pop("patient", None)
+        self.start_pending = False
         for poses, it, prior, losses in self._seen_losses(self.images):
             self._consider("patient", sum(v[0] for v in losses.values()) + prior, {k: v[1] for k, v in losses.items()},
                            poses, it, prior)
@@ -422,6 +446,7 @@ class TTORun:
     def finish(self, **fields) -> TTOResult:
         """The result: the best pose seen (per view, or of the patient pose), the trace, and ``fields``
         (``stopped_at``, ``ranking_loss``)."""
+        self._score_start()
         poses, best_mncc, best_iteration = {}, {}, {}
         for _, scores, best_poses, it, _ in self.best.values():
             for name, pose in best_poses.items():
