@@ -284,7 +284,8 @@ class TTORun:
                          else set())
         # best[...] = (objective loss, per-view mNCC, per-view pose, iteration, prior); one entry for a patient
         # pose, whose full-size evaluations are kept in ``seen`` (poses, iteration, prior) to be scored again, and
-        # their terms by the images that scored them in ``scored`` (index in seen -> [(images, terms)])
+        # their terms by the images that scored them in ``scored`` (index in seen -> [(images, terms)]; an images
+        # object keeps its objective: :meth:`TTOImages.rebound` makes a new one)
         self.best: dict = {}
         self.seen: list[tuple[dict, int, float]] = []
         self.scored: dict[int, list[tuple[TTOImages, dict]]] = {}
