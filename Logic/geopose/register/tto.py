@@ -332,14 +332,19 @@ class TTORun:
         if key not in self.best or loss < self.best[key][0]:
             self.best[key] = (loss, scores, poses, it, prior)
 
+    def _consider_patient(self, poses: dict, it: int, prior: float, terms: dict) -> None:
+        """Keep a full-size patient pose if its objective (the views' losses, ``terms[view][0]``, plus ``prior``) is
+        the lowest so far."""
+        self._consider("patient", sum(v[0] for v in terms.values()) + prior, {k: v[1] for k, v in terms.items()},
+                       poses, it, prior)
+
     def _record_best(self, losses: dict, poses: dict, it: int) -> None:
         if self.joint:
             self._score_start()
             prior = float(self.params.rotation_prior().detach())
             self.seen.append((poses, it, prior))
             self.scored[len(self.seen) - 1] = [(self.images, {k: list(v[:2]) for k, v in losses.items()})]
-            self._consider("patient", sum(v[0] for v in losses.values()) + prior, {k: v[1] for k, v in losses.items()},
-                           poses, it, prior)
+            self._consider_patient(poses, it, prior, losses)
         else:  # per view; the paper keeps the pose of best mNCC
             for name in self.names:
                 key = -losses[name][1] if self.schedule.paper else losses[name][0]
@@ -368,9 +373,8 @@ class TTORun:
         """Score the start (a patient-pose run's first seen pose) if it waits to be."""
         if self.start_pending:
             self.start_pending = False
-            for poses, it, prior, losses in self._seen_losses(self.images, 1):
-                self._consider("patient", sum(v[0] for v in losses.values()) + prior,
-                               {k: v[1] for k, v in losses.items()}, poses, it, prior)
+            for seen in self._seen_losses(self.images, 1):
+                self._consider_patient(*seen)
 
     def rescore_best(self) -> None:
         """Score the full-size patient poses seen so far again with the objective the images hold now
@@ -378,9 +382,8 @@ class TTORun:
         them on equal terms."""
         self.best.pop("patient", None)
         self.start_pending = False
-        for poses, it, prior, losses in self._seen_losses(self.images):
-            self._consider("patient", sum(v[0] for v in losses.values()) + prior, {k: v[1] for k, v in losses.items()},
-                           poses, it, prior)
+        for seen in self._seen_losses(self.images):
+            self._consider_patient(*seen)
 
     def best_loss_by(self, images: TTOImages) -> float:
         """The lowest objective (views summed, no prior) ``images`` give the full-size patient poses this run has
