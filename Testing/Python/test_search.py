@@ -10,6 +10,7 @@ from geopose.geometry.poses import rotation_angle_rad
 from geopose.options import SearchOptions
 from geopose.register import render_model_view
 from geopose.register.biplane import moved_by, view_poses
+from geopose.register.progress import Monitor
 from geopose.register.search import similarity_search
 
 
@@ -33,3 +34,28 @@ def test_similarity_search_recovers_shift_and_in_plane_turns_and_keeps_the_truth
     assert {name for name, _ in found.moves} <= {"shift x (mm)", "shift y (mm)", "shift z (mm)",
                                                   "turn about the PA ray (deg)", "turn about the LAT ray (deg)"}
     assert {abs(step) for _, step in found.moves} <= {step for step, _ in SearchOptions.schedule}
+
+
+def test_similarity_search_never_scores_the_pose_it_just_left():
+    renderer = blob_renderer()
+    X_true = _patient()
+    truth = view_poses(X_true, RIG)
+    targets = {k: render_model_view(renderer, truth[k], RENDER_PX) for k in RIG}
+    first = list(RIG)[0]
+    scored: list[tuple] = []  # every patient pose scored, rounded to 1e-6
+    render = renderer.render
+
+    def recording(poses, *args, **kwargs):
+        scored.append(tuple(np.round(np.asarray(poses)[0] @ np.linalg.inv(RIG[first]), 6)[:3].ravel()))
+        return render(poses, *args, **kwargs)
+
+    renderer.render = recording
+    starts: list[int] = []  # where each step size began in ``scored`` (and where the search ended)
+    monitor = Monitor(lambda stage, fraction, message: starts.append(len(scored)))
+    start = moved_by(X_true, np.zeros(3), np.array([6.0, 0.0, 0.0]))
+    found = similarity_search(renderer, targets, start, RIG, RENDER_PX, monitor=monitor)
+    assert ("shift x (mm)", -4.0) in found.moves and found.evaluations == len(scored)
+    # No pose is scored twice within a step size: the move back to the pose just left (it scored lower) is not tried.
+    assert len(starts) == len(SearchOptions.schedule) + 1
+    for begin, end in zip(starts, starts[1:]):
+        assert len(set(scored[begin:end])) == end - begin

@@ -5,8 +5,8 @@ both views observe in-plane: the isocentre shift along each CTA axis (mm) and th
 each view's central ray (deg; that view's in-plane rotation). Each move is tried in both
 directions at each step size of ``options.SearchOptions.schedule``; an improvement of the
 views' mean mNCC (float64) between the model-geometry target and the DRR, both at that step's
-image size, is kept and the directions are tried again; a step size ends when no move
-improves. The coarse steps score small images (the renderer then samples a coarser CTA
+image size, is kept and the directions are tried again, but for the one back to the pose just
+left (it scored lower); a step size ends when no move improves. The coarse steps score small images (the renderer then samples a coarser CTA
 level: a third of the time), the finest the networks' render size. The turn about the axis
 both views share is left to the TTO: it barely changes either image (``axis_search.valley_turn``).
 No PyTorch: it runs on either engine, so the torch-free engine's result gains it too. numpy
@@ -75,15 +75,17 @@ def similarity_search(
         monitor.step("search", i / len(schedule), f"step {size:g} ({evaluations[0]} poses scored)")
         score = scorer(px or render_px)
         best = score(X)
-        improved = True
+        improved, back = True, None
         while improved:
             improved = False
             for name, turn, shift in _moves(X, rig):
                 for sign in (1.0, -1.0):
+                    if (name, sign) == back:  # the pose just left: it scored lower
+                        continue
                     candidate = moved_by(X, sign * size * turn, sign * size * shift)
                     value = score(candidate)
                     if value > best:
-                        X, best, improved = candidate, value, True
+                        X, best, improved, back = candidate, value, True, (name, -sign)
                         moves.append((name, sign * size))
                         break
                 if improved:
