@@ -206,3 +206,30 @@ def test_a_run_renders_each_seen_pose_once_per_objective(phantom_case):
     with counting() as work:
         again = run.best_loss_by(images.rebound(renderer))
     assert work.renders == 2 * len(run.seen) and again == judged
+
+
+def test_the_step_after_a_common_axis_search_reuses_the_chosen_turn(phantom_case):
+    """The common-axis search scores its turns with gradients and hands the chosen one's evaluation to the step that
+    follows: one full-size render per view fewer than rendering it again, and the same trace, bit for bit."""
+    from geopose.register.progress import Monitor
+    from geopose.register.tto import TTOImages, TTORun
+    from geopose.render.work import counting
+
+    class RendersAgain(TTORun):
+        def _axis_search(self, it, keep):
+            return super()._axis_search(it, keep=False)
+
+    truth, runs, prep, renderer = _prepared(phantom_case)
+    rig = nominal_poses(runs)
+    start = {k: _perturb(p) for k, p in truth.poses.items()}
+    schedule = TTOSchedule(iterations=8, axis_search_at=(0.75,))  # the search before step 6, a full-size step
+    traces, renders = [], []
+    for kind in (TTORun, RendersAgain):
+        run = kind(TTOImages(renderer, tto_views(prep.views, truth.poses), Objective()), start, schedule, rig, False, "cpu")
+        with counting() as work:
+            run.advance(run.n + 1, Monitor())
+        assert [s["iteration"] for s in run.axis_searches] == [6] and run.coarse < 6 < run.n
+        traces.append([(t["loss"], [t["views"][k]["pose"] for k in sorted(t["views"])]) for t in run.trace])
+        renders.append(work.renders)
+    assert traces[0] == traces[1]
+    assert renders[0] == renders[1] - len(rig)

@@ -208,9 +208,10 @@ class _PatientParams:
         w2 = (d ** 2).sum() if self.prior_axis is None else (d @ self.prior_axis) ** 2
         return self.prior_per_rad2 * w2
 
-    def move_along(self, start: tuple, direction: tuple[np.ndarray, np.ndarray], angle_rad: float) -> None:
-        """Set ``w, v`` to the ``start`` ``(w, v)`` moved by ``angle_rad`` along ``direction`` (rotation
-        rad/rad, shift mm/rad: :func:`.axis_search.valley_turn`), as :func:`.biplane.moved_by` does."""
+    @staticmethod
+    def moved(start: tuple, direction: tuple[np.ndarray, np.ndarray], angle_rad: float) -> tuple:
+        """The ``start`` ``(w, v)`` moved by ``angle_rad`` along ``direction`` (rotation rad/rad, shift mm/rad:
+        :func:`.axis_search.valley_turn`), as :func:`.biplane.moved_by` does: new tensors ``(w, v)``."""
         import torch
 
         from ..geometry.rigid import axis_angle_to_matrix, matrix_to_axis_angle
@@ -218,22 +219,29 @@ class _PatientParams:
         w0, v0 = start
         rotation, shift = (torch.as_tensor(np.asarray(a) * angle_rad, dtype=w0.dtype, device=w0.device)
                            for a in direction)
-        self.w.copy_(matrix_to_axis_angle(axis_angle_to_matrix(rotation) @ axis_angle_to_matrix(w0)))
-        self.v.copy_(v0 + shift)
+        return matrix_to_axis_angle(axis_angle_to_matrix(rotation) @ axis_angle_to_matrix(w0)), v0 + shift
+
+    def move_along(self, start: tuple, direction: tuple[np.ndarray, np.ndarray], angle_rad: float) -> None:
+        """Set ``w, v`` to :meth:`moved` (in place: the optimiser holds them)."""
+        w, v = self.moved(start, direction, angle_rad)
+        self.w.copy_(w)
+        self.v.copy_(v)
 
     def groups(self, schedule: TTOSchedule) -> list[dict]:
         return [{"params": [self.w], "lr": schedule.rotation_lr_rad}, {"params": [self.v], "lr": schedule.translation_lr_mm}]
 
-    def patient(self):
+    def patient(self, w=None, v=None):
+        """The patient pose ``(4, 4)`` at the parameters (or at ``w, v``, e.g. a turn the common-axis search scores)."""
         import torch
 
         from ..geometry.rigid import axis_angle_to_matrix
 
-        top = torch.cat((axis_angle_to_matrix(self.w) @ self.X0[:3, :3], (self.X0[:3, 3] + self.v)[:, None]), dim=1)
+        w, v = (self.w, self.v) if w is None else (w, v)
+        top = torch.cat((axis_angle_to_matrix(w) @ self.X0[:3, :3], (self.X0[:3, 3] + v)[:, None]), dim=1)
         return torch.cat((top, self.X0[3:]), dim=0)
 
-    def poses(self) -> dict:
-        X = self.patient()
+    def poses(self, w=None, v=None) -> dict:
+        X = self.patient(w, v)
         return {k: (X @ A)[None] for k, A in self.rig.items()}
 
 
@@ -309,24 +317,31 @@ class TTORun:
                 self.params.groups(schedule), total_steps=self.n, pct_start=schedule.warmup_fraction,
                 div_factor=schedule.div_factor, final_div_factor=1.0 / (schedule.div_factor * schedule.final_lr_fraction))
 
-    def _evaluate(self, size: str) -> tuple:
+    def _evaluate(self, size: str, views: tuple | None = None) -> tuple:
+        """``(total, losses, poses)`` at the parameters: the views' losses (:meth:`_views`, or ``views`` already
+        rendered there), the arms' orthogonality and the rotation prior."""
+        total, losses, poses, tensors = views or self._views(size)
+        if self.biplanar and len(self.names) == 2:
+            rotations = [tensors[name][:, :3, :3] for name in self.names]
+            total = total + BIPLANAR_WEIGHT * biplanar_penalty(*rotations).sum()
+        if self.joint:
+            total = total + self.params.rotation_prior()
+        return total, losses, poses
+
+    def _views(self, size: str, w=None, v=None) -> tuple:
+        """The views' summed loss (torch), their terms (floats), poses (numpy) and pose tensors at the parameters (or,
+        for a patient pose, at ``w, v``)."""
         import torch
 
-        poses = self.params.poses()
+        tensors = self.params.poses() if w is None else self.params.poses(w, v)
         losses = {}
-        rotations = {}
         total = torch.zeros((), dtype=torch.float64, device=self.device)
         for name in self.names:
-            view_loss, sim, dice, vessel = self.images.loss(name, poses[name], size)
+            view_loss, sim, dice, vessel = self.images.loss(name, tensors[name], size)
             losses[name] = (float(view_loss.detach()), float(sim.detach()), float(dice.detach()),
                             None if vessel is None else float(vessel.detach()))
             total = total + view_loss
-            rotations[name] = poses[name][:, :3, :3]
-        if self.biplanar and len(self.names) == 2:
-            total = total + BIPLANAR_WEIGHT * biplanar_penalty(rotations[self.names[0]], rotations[self.names[1]]).sum()
-        if self.joint:
-            total = total + self.params.rotation_prior()
-        return total, losses, {k: p.detach()[0].cpu().numpy() for k, p in poses.items()}
+        return total, losses, {k: p.detach()[0].cpu().numpy() for k, p in tensors.items()}, tensors
 
     def _consider(self, key: str, loss: float, scores: dict, poses: dict, it: int, prior: float = 0.0) -> None:
         if key not in self.best or loss < self.best[key][0]:
@@ -390,10 +405,12 @@ class TTORun:
         evaluated: its runs compared on one objective (:func:`.tournament.optimise_from_starts`)."""
         return min(sum(v[0] for v in losses.values()) for _, _, _, losses in self._seen_losses(images))
 
-    def _axis_search(self, it: int) -> None:
+    def _axis_search(self, it: int, keep: bool) -> tuple | None:
         """Move the patient along the common-axis valley (:func:`.axis_search.valley_turn`: the turn
         about the common axis with the other parameters' compensation) to the objective's best
-        (``TTOSchedule``), and centre the rotation prior there."""
+        (``TTOSchedule``), and centre the rotation prior there. ``keep``: the turns are scored with gradients and
+        the chosen one's evaluation is returned (:meth:`_views`, with its leaves ``w, v``), which the step that follows
+        would otherwise render again; at most two full-size graphs are alive, the lowest so far and the one scored."""
         import torch
 
         params, step = self.params, self.schedule.axis_search_step_deg
@@ -404,11 +421,16 @@ class TTORun:
         direction = valley_turn(X, rig, detectors, self.images.valley_points())
         if direction is None:  # no points to project: the bare turn
             direction = (params.prior_axis.cpu().numpy(), np.zeros(3))
+        lowest: dict = {}
 
         def score(deg: float) -> float:
-            params.move_along(start, direction, math.radians(deg))
-            _, losses, _ = self._evaluate("full")
-            return sum(v[0] for v in losses.values())
+            w, v = (t.requires_grad_(keep) for t in params.moved(start, direction, math.radians(deg)))
+            with torch.set_grad_enabled(keep):
+                views = self._views("full", w, v)
+            value = sum(terms[0] for terms in views[1].values())
+            if keep and ("value" not in lowest or value < lowest["value"]):  # the first lowest, as best_turn's choice
+                lowest.update(deg=deg, value=value, views=views, leaves=(w, v))
+            return value
 
         with torch.no_grad():
             turns, scores, chosen = best_turn(score, step)
@@ -418,6 +440,7 @@ class TTORun:
             "iteration": it, "turn_deg": turns, "loss": scores, "chosen_deg": chosen,
             "rotation_per_rad": np.asarray(direction[0]).tolist(),
             "shift_mm_per_rad": np.asarray(direction[1]).tolist()})
+        return (lowest["views"], lowest["leaves"]) if keep and lowest["deg"] == chosen else None
 
     def advance(self, until: int, monitor: Monitor) -> None:
         """Run iterations up to (not including) ``until`` (at most the last, ``n``): evaluate, record,
@@ -428,11 +451,10 @@ class TTORun:
         while self.it < end:
             it, final = self.it, self.it == self.n
             size = "half" if it < self.coarse else "full"
-            if it in self.searches:
-                self._axis_search(it)
+            searched = self._axis_search(it, keep=size == "full" and not final) if it in self.searches else None
             monitor.step("tto", (it - begin) / max(end - begin, 1), f"iteration {it}/{self.n} ({size} size)")
             with torch.set_grad_enabled(not final):
-                total, losses, poses = self._evaluate(size)
+                total, losses, poses = self._evaluate(size, searched[0] if searched else None)
             self.trace.append({
                 "iteration": it, "size": size, "loss": float(total.detach()),
                 "learning_rates": None if final else self.optimiser.learning_rates,
@@ -444,6 +466,9 @@ class TTORun:
             if not final:
                 self.optimiser.zero_grad()
                 total.backward()
+                if searched:  # the views' gradient reached the search's leaves (at the parameters' values): add it
+                    for param, leaf in zip((self.params.w, self.params.v), searched[1]):
+                        param.grad = leaf.grad if param.grad is None else param.grad + leaf.grad
                 self.optimiser.step()
             self.it += 1
 
