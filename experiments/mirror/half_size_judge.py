@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
-import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -23,9 +22,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from heldout import parse_heldout_args  # noqa: E402
+from heldout import heldout_phantoms  # noqa: E402
 
-from geopose.bench.cases import phantom_case  # noqa: E402
 from geopose.images import resize_bilinear  # noqa: E402
 from geopose.nets import load_models  # noqa: E402
 from geopose.register import mirror, pipeline, register_case, tto  # noqa: E402
@@ -90,18 +88,15 @@ def both_tests(*args, **kwargs):
 def main() -> None:
     tto.TTOImages.loss = half_loss
     pipeline.mirror_test = both_tests
-    args, seeds = parse_heldout_args(__doc__.splitlines()[0], "6010-6029")
     models = load_models(runtime="torch")
-    out = open(args.doc, "w") if args.doc else sys.stdout
-    with tempfile.TemporaryDirectory() as tmp:
-        for seed in seeds:
-            case = phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm)
-            axis = 2 - int(np.argmax(np.abs(case.cta.ijk_to_ras[0, :3]) / np.asarray(case.cta.spacing_mm)))
-            for name, cta in (("correct", case.cta), ("mirrored", case.cta.like(np.ascontiguousarray(np.flip(case.cta.array, axis))))):
-                SEEN.clear()
-                register_case(cta, case.runs, models=models)
-                row = {"seed": seed, "cta": name, **{k: round(v, 4) for k, v in SEEN.items()}}
-                print(json.dumps(row), file=out, flush=True)
+    for _, case, out in heldout_phantoms(__doc__.splitlines()[0], "6010-6029"):
+        axis = 2 - int(np.argmax(np.abs(case.cta.ijk_to_ras[0, :3]) / np.asarray(case.cta.spacing_mm)))
+        for name, cta in (("correct", case.cta), ("mirrored", case.cta.like(np.ascontiguousarray(np.flip(case.cta.array, axis))))):
+            SEEN.clear()
+            register_case(cta, case.runs, models=models)
+            row = {"seed": int(case.name.rsplit("-", 1)[1]), "cta": name,
+                   **{k: round(v, 4) for k, v in SEEN.items()}}
+            print(json.dumps(row), file=out, flush=True)
 
 
 if __name__ == "__main__":
