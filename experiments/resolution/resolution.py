@@ -5,7 +5,8 @@ Each folder is a phantom case as ``geopose phantom --seed S --spacing-mm MM --ou
 the CTA and the two runs read from the files, masks computed, every option at its default); the truth only scores. One
 JSON line per case: carotid mPCD (mm at the detector) and rotation error (deg) per view of the result and of the
 networks' estimate, the start kept, whether the networks' estimate was kept, the mirror test's margin, the flags and
-the total time (s).
+the total time (s). ``--mirrored``: the CTA's array flipped along its left-right axis, the header kept (as
+``experiments/mirror/mirror_default_path.py``): the mirror test should fail the result.
 
     for s in $(seq 6010 6034); do geopose phantom --seed $s --spacing-mm 1 --out /tmp/ph1/$s; done
     .venv/bin/python experiments/resolution/resolution.py --folders /tmp/ph1 --seeds 6010-6034 --doc rows_1mm.jsonl
@@ -52,6 +53,7 @@ def main() -> None:
     ap.add_argument("--folders", type=Path, required=True, help="the folder holding one phantom case folder per seed")
     ap.add_argument("--seeds", type=seed_range, required=True, help="held-out seeds, e.g. 6010-6034")
     ap.add_argument("--doc", type=Path, default=None, help="JSON lines out (default: stdout)")
+    ap.add_argument("--mirrored", action="store_true", help="register each CTA mirrored left-right")
     args = ap.parse_args()
     torch.set_num_threads(2)
     clash = training_seeds(default_models_dir() / "manifest.json") & set(args.seeds)
@@ -62,6 +64,9 @@ def main() -> None:
     for seed in args.seeds:
         folder = args.folders / str(seed)
         cta = load_cta(folder / "cta.nii.gz")
+        if args.mirrored:
+            axis = 2 - int(np.argmax(np.abs(cta.ijk_to_ras[0, :3]) / np.asarray(cta.spacing_mm)))
+            cta = cta.like(np.ascontiguousarray(np.flip(cta.array, axis)))
         runs = {"pa": read_dsa(folder / "dsa_pa.dcm"), "lat": read_dsa(folder / "dsa_lat.dcm")}
         truth = load_truth(folder / "cta.nii.gz")
         reg = register_case(cta, runs, models=models)
