@@ -15,6 +15,7 @@ from typing import Callable, Iterator, TextIO
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "Logic"))
 
 import geopose  # noqa: E402,F401  (before torch: its OpenMP threads then sleep when idle, geopose.OPENMP_THREADS_SLEEP)
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from geopose.bench.cases import BenchCase, ge_head_case, headsq_case, phantom_case, seed_range, training_seeds  # noqa: E402
@@ -49,6 +50,28 @@ def heldout_phantoms(description: str, default_seeds: str) -> Iterator[tuple[arg
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds:
             yield args, phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm), out
+
+
+def view_errors(case, poses: dict) -> dict:
+    """Per view ``(carotid mPCD at the detector, mm; rotation error, deg)`` of ``poses`` ``{view: (4, 4)}`` against the
+    phantom's truth; ``case`` holds ``true_poses``, ``runs`` and ``carotid_points_mm`` (a :class:`BenchCase`)."""
+    from geopose.metrics.measures import pose_error_components
+    from geopose.register.evaluate import carotid_mpcd
+
+    out = {}
+    for k in ("pa", "lat"):
+        m = carotid_mpcd(poses[k], case.true_poses[k], case.runs[k].detector, case.runs[k].angles.sod_mm,
+                         case.carotid_points_mm)[0].detector_mm
+        p = pose_error_components(poses[k], case.true_poses[k])
+        out[k] = (round(m, 3), round(float(np.hypot(p["in_plane_rotation_deg"], p["out_of_plane_rotation_deg"])), 3))
+    return out
+
+
+def flipped_left_right(cta):
+    """The CTA :class:`~geopose.volume.Volume` with its array flipped along the axis nearest left-right, the header
+    kept: what a CTA whose header swaps the patient's sides gives (the mirror test's input)."""
+    axis = 2 - int(np.argmax(np.abs(cta.ijk_to_ras[0, :3]) / np.asarray(cta.spacing_mm)))
+    return cta.like(np.ascontiguousarray(np.flip(cta.array, axis)))
 
 
 def error_cell(err: tuple[float, float, float | None]) -> str:

@@ -14,9 +14,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import heldout  # noqa: E402,F401  (the library on the path, geopose before torch)
+from heldout import flipped_left_right  # noqa: E402  (also puts the library on the path, geopose before torch)
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from geopose.cta.io import load_cta  # noqa: E402
@@ -45,8 +44,7 @@ def main() -> None:
     for seed in range(first, last + 1):
         cta = load_cta(folders / str(seed) / "cta.nii.gz")
         runs = {k: read_dsa(folders / str(seed) / f"dsa_{k}.dcm") for k in ("pa", "lat")}
-        axis = 2 - int(np.argmax(np.abs(cta.ijk_to_ras[0, :3]) / np.asarray(cta.spacing_mm)))
-        for name, c in (("correct", cta), ("mirrored", cta.like(np.ascontiguousarray(np.flip(cta.array, axis))))):
+        for name, c in (("correct", cta), ("mirrored", flipped_left_right(cta))):
             MARGINS.clear()
             pipeline.register_case(c, runs, models=models)
             print(json.dumps({"seed": seed, "cta": name, **{k: round(v, 4) for k, v in MARGINS.items()}}), flush=True)

@@ -5,27 +5,37 @@ and the tournament's objectives. One line per seed.
 
     .venv/bin/python experiments/resolution/mirror_ends.py /tmp/ph1 6011 6027
 """
-import sys, json
+
+import json
+import sys
 from pathlib import Path
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import heldout  # noqa: F401  (the library on the path, geopose before torch)
-import numpy as np
-import geopose
-from geopose.register.pipeline import register_case
-from geopose.cta.io import load_cta
-from geopose.dsa.readers import read_dsa
-from geopose.nets import load_models
-import torch
-torch.set_num_threads(2)
-models = load_models(runtime="torch")
-for seed in sys.argv[2:]:
-    d = f"{sys.argv[1]}/{seed}"
-    cta = load_cta(f"{d}/cta.nii.gz")
-    runs = {"pa": read_dsa(f"{d}/dsa_pa.dcm"), "lat": read_dsa(f"{d}/dsa_lat.dcm")}
-    axis = 2 - int(np.argmax(np.abs(cta.ijk_to_ras[0, :3]) / np.asarray(cta.spacing_mm)))
-    out = {}
-    for name, c in (("mirrored", cta.like(np.ascontiguousarray(np.flip(cta.array, axis)))), ("correct", cta)):
-        r = register_case(c, runs, models=models).registration
-        out[name] = {"result_loss": round(r.mirror.loss, 4), "hypothesis_loss": round(r.mirror.mirrored_loss, 4),
-                     "tto_objective": {k: round(v, 4) for k, v in r.tto_objective.items()}, "chosen": r.chosen_start}
-    print(seed, json.dumps(out), flush=True)
+
+from heldout import flipped_left_right  # noqa: E402  (also puts the library on the path, geopose before torch)
+
+import torch  # noqa: E402
+
+from geopose.cta.io import load_cta  # noqa: E402
+from geopose.dsa.readers import read_dsa  # noqa: E402
+from geopose.nets import load_models  # noqa: E402
+from geopose.register import register_case  # noqa: E402
+
+
+def main() -> None:
+    torch.set_num_threads(2)
+    models = load_models(runtime="torch")
+    folders = Path(sys.argv[1])
+    for seed in sys.argv[2:]:
+        cta = load_cta(folders / seed / "cta.nii.gz")
+        runs = {k: read_dsa(folders / seed / f"dsa_{k}.dcm") for k in ("pa", "lat")}
+        out = {}
+        for name, c in (("mirrored", flipped_left_right(cta)), ("correct", cta)):
+            r = register_case(c, runs, models=models).registration
+            out[name] = {"result_loss": round(r.mirror.loss, 4), "hypothesis_loss": round(r.mirror.mirrored_loss, 4),
+                         "tto_objective": {k: round(v, 4) for k, v in r.tto_objective.items()}, "chosen": r.chosen_start}
+        print(seed, json.dumps(out), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -17,33 +17,20 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from types import SimpleNamespace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import heldout  # noqa: E402,F401  (the library on the path, geopose imported before torch)
-
-import numpy as np  # noqa: E402
+from heldout import flipped_left_right, view_errors  # noqa: E402  (also puts the library on the path, geopose before torch)
 
 from geopose.bench.cases import seed_range, training_seeds  # noqa: E402
 from geopose.cta.io import load_cta  # noqa: E402
 from geopose.dsa.readers import read_dsa  # noqa: E402
-from geopose.metrics.measures import pose_error_components  # noqa: E402
 from geopose.nets import load_models  # noqa: E402
 from geopose.register import register_case  # noqa: E402
-from geopose.register.evaluate import carotid_mpcd, load_truth  # noqa: E402
+from geopose.register.evaluate import load_truth  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
-
-
-def errors(poses: dict, truth, runs: dict) -> dict:
-    """Per view ``[carotid mPCD (mm), rotation error (deg)]`` against the phantom's truth."""
-    out = {}
-    for k in ("pa", "lat"):
-        mpcd = carotid_mpcd(poses[k], truth.poses[k], runs[k].detector, runs[k].angles.sod_mm, truth.carotid_points_mm)[0]
-        parts = pose_error_components(poses[k], truth.poses[k])
-        out[k] = [round(mpcd.detector_mm, 3),
-                  round(float(np.hypot(parts["in_plane_rotation_deg"], parts["out_of_plane_rotation_deg"])), 3)]
-    return out
 
 
 def main() -> None:
@@ -65,14 +52,14 @@ def main() -> None:
         folder = args.folders / str(seed)
         cta = load_cta(folder / "cta.nii.gz")
         if args.mirrored:
-            axis = 2 - int(np.argmax(np.abs(cta.ijk_to_ras[0, :3]) / np.asarray(cta.spacing_mm)))
-            cta = cta.like(np.ascontiguousarray(np.flip(cta.array, axis)))
+            cta = flipped_left_right(cta)
         runs = {"pa": read_dsa(folder / "dsa_pa.dcm"), "lat": read_dsa(folder / "dsa_lat.dcm")}
         truth = load_truth(folder / "cta.nii.gz")
+        scored = SimpleNamespace(true_poses=truth.poses, runs=runs, carotid_points_mm=truth.carotid_points_mm)
         reg = register_case(cta, runs, models=models)
         r = reg.registration
-        row = {"seed": seed, "final": errors({k: reg.views[k].final_pose for k in runs}, truth, runs),
-               "estimate": errors({k: reg.views[k].search_pose for k in runs}, truth, runs),
+        row = {"seed": seed, "final": view_errors(scored, {k: reg.views[k].final_pose for k in runs}),
+               "estimate": view_errors(scored, {k: reg.views[k].search_pose for k in runs}),
                "chosen": r.chosen_start, "kept_learned": bool(r.kept_learned),
                "mirror": None if r.mirror is None else round(float(r.mirror.margin), 4),
                "flags": [reg.views[k].quality.flag for k in ("pa", "lat")], "total_s": round(reg.runtimes_s["total"], 2)}

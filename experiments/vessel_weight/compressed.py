@@ -36,14 +36,12 @@ def _take(flag: str) -> list[str]:
 MODES = _take("--mode")
 PROTOCOL = _take("--protocol")[0]
 
-from heldout import heldout_phantoms  # noqa: E402
+from heldout import heldout_phantoms, view_errors  # noqa: E402
 from selection_oracle import DROPPED, drift_rows  # noqa: E402
 
-from geopose.metrics.measures import pose_error_components  # noqa: E402
 from geopose.nets import load_models  # noqa: E402
 from geopose.register import objective  # noqa: E402
 from geopose.register import register_case  # noqa: E402
-from geopose.register.evaluate import carotid_mpcd  # noqa: E402
 
 MODE = {"now": "linear"}
 
@@ -66,17 +64,6 @@ for kernels in (objective._TorchKernels, objective._NumpyKernels):
     kernels.ncc = staticmethod(lambda a, b, _ncc=kernels.ncc: _ncc(a, compress(b)))
 
 
-def errors(case, poses) -> dict:
-    """Per view: carotid mPCD (mm at the detector) and rotation error (deg) against the truth."""
-    out = {}
-    for k in ("pa", "lat"):
-        mpcd = carotid_mpcd(poses[k], case.true_poses[k], case.runs[k].detector, case.runs[k].angles.sod_mm,
-                            case.carotid_points_mm)[0].detector_mm
-        parts = pose_error_components(poses[k], case.true_poses[k])
-        out[k] = [round(mpcd, 3), round(float(np.hypot(parts["in_plane_rotation_deg"], parts["out_of_plane_rotation_deg"])), 3)]
-    return out
-
-
 def main() -> None:
     if PROTOCOL == "drift":
         def setter(mode):
@@ -92,7 +79,7 @@ def main() -> None:
             MODE["now"] = mode
             reg = register_case(case.cta, case.runs, models=models)
             r = reg.registration
-            row[mode] = {"final": errors(case, {k: reg.views[k].final_pose for k in ("pa", "lat")}),
+            row[mode] = {"final": view_errors(case, {k: reg.views[k].final_pose for k in ("pa", "lat")}),
                          "chosen": r.chosen_start, "kept_learned": bool(r.kept_learned),
                          "mirror_margin": None if r.mirror is None else round(float(r.mirror.margin), 4),
                          "flags": [reg.views[k].quality.flag for k in ("pa", "lat")]}

@@ -5,27 +5,17 @@ carotid mPCD (mm) and rotation error (deg) per view, the flags and the time (s),
 from __future__ import annotations
 
 import json
+import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from geopose.bench.cases import phantom_case
-from geopose.metrics.measures import pose_error_components
-from geopose.nets import load_models
-from geopose.register import register_case
-from geopose.register.evaluate import carotid_mpcd
+from heldout import view_errors  # noqa: E402
 
-
-def view_errors(case, poses) -> dict:
-    """Per view: (carotid mPCD at the detector, mm; rotation error, deg) of ``poses`` against the phantom's truth."""
-    out = {}
-    for k in ("pa", "lat"):
-        m = carotid_mpcd(poses[k], case.true_poses[k], case.runs[k].detector, case.runs[k].angles.sod_mm,
-                         case.carotid_points_mm)[0].detector_mm
-        p = pose_error_components(poses[k], case.true_poses[k])
-        out[k] = (round(m, 3), round(float(np.hypot(p["in_plane_rotation_deg"], p["out_of_plane_rotation_deg"])), 3))
-    return out
+from geopose.bench.cases import phantom_case  # noqa: E402
+from geopose.nets import load_models  # noqa: E402
+from geopose.register import register_case  # noqa: E402
 
 
 def run_seeds(seeds: list[int], out_path: str, mode: str, info: dict) -> None:
