@@ -161,8 +161,9 @@ class TTOSchedule(_Group):
     #: search put it): that rotation is out of plane in both views, its gradient is weak, and
     #: without the prior NAdam's normalised steps wander along it. The other two rotations are
     #: in-plane in one view and free: a prior on all three held the start's rotation error
-    #: (docs/benchmark/bench.md, reading). The prior also holds the start's error about the common
-    #: axis, which the objective does see over a few degrees; the common-axis search
+    #: (`git show 5fa7719:docs/benchmark/bench.md`, its reading: 3.05 mm with it). The prior also
+    #: holds the start's error about the common axis, which the objective does see over a few
+    #: degrees; the common-axis search
     #: (``axis_search_at``) corrects it (experiments/tto_schedule/tto_schedule.md).
     rotation_prior_per_rad2: float = setting(10.0, "weight (per rad^2) of the prior holding the turn about the common "
                                              "axis", bounds=(0.0, 1e6))
@@ -221,7 +222,7 @@ class Objective(_Group):
 @dataclass(frozen=True)
 class RegistrationOptions(_Group):
     """Every setting of one registration. ``None`` means "decided by the data": the models' manifest
-    (``render_px``, ``model_clip_percentiles``), the device (``tto.px``) or the CTA (``work_spacing_mm``);
+    (``render_px``, ``model_clip_percentiles``), the device (``tto.px``) or the CTA and the TTO size (``work_spacing_mm``);
     the result record says what was used."""
 
     backend: str = setting("auto", "torch (torch renderer and networks), onnxruntime (numpy renderer, shipped ONNX "
@@ -239,7 +240,9 @@ class RegistrationOptions(_Group):
     estimate_voxel_per_pixel: float = setting(1.5, "greedy Refine and the similarity search render the coarsest CTA level "
                                               "whose voxels are at most this many pixel footprints (3: about 1 s faster, "
                                               "see experiments/refine_starts)", bounds=L.VOXEL_PER_PIXEL)
-    work_spacing_mm: float | None = setting(None, "finest voxel size (mm) the renderers sample (default: the CTA's)",
+    work_spacing_mm: float | None = setting(None, "the finest CTA level the renderers sample is the coarsest with voxels of at "
+                                            f"most this (mm) (default: 2 mm for the CPU's {TTO_PX_CPU} px TTO images, 1 mm for "
+                                            f"CUDA's {TTO_PX_CUDA})",
                                             kind="float", bounds=L.WORK_SPACING_MM)
     independent_views: bool = setting(False, "register each view on its own (the published pipeline) instead of one "
                                       "patient pose seen by both arms")

@@ -95,9 +95,11 @@ def test_levels_are_the_density_block_averaged_and_cropped():
     # Block averages keep the line-integral mass (each coarse voxel is 8 x larger).
     assert 8 * coarse.density[0].sum() == pytest.approx(density.sum(), rel=1e-4)
     np.testing.assert_allclose(block_mean(np.arange(12.0).reshape(1, 2, 6), (1, 2, 3)), [[[4.0, 7.0]]])
-    # The coarsest level no finer than a voxel size, power-of-two factors, bounded below by the option.
+    # The coarsest level no finer than a voxel size, power-of-two factors; with the option, renders that resolve
+    # finer sample the coarsest level with voxels of at most its size (2 x 2.0 mm, 2.2 and 2.5 mm kept: 4.4, 5 > 4).
     assert volume.factors_for(2.1) == (1, 1, 1) and volume.factors_for(4.5) == (2, 2, 1)
-    assert RenderVolume(cta, finest_spacing_mm=4.0).factors_for(1.0) == (2, 2, 2)
+    assert RenderVolume(cta, finest_spacing_mm=4.0).factors_for(1.0) == (2, 1, 1)
+    assert RenderVolume(cta, finest_spacing_mm=4.0).factors_for(4.5) == volume.factors_for(4.5)
 
 
 def test_a_coarsened_volume_is_the_cta_on_its_block_grid_in_a_shifted_frame():
@@ -198,6 +200,28 @@ def test_a_render_samples_the_level_its_pixels_resolve():
     estimator.render(isopose(C.VIEW_PA), model)
     assert estimator.volume is renderer.volume and (4, 4, 4) in renderer.volume.levels
     assert estimator._kernels is renderer._kernels and len(renderer._kernels) == 1
+
+
+def test_a_registration_samples_no_finer_level_than_its_tto_images_need(tmp_path):
+    """The finest level follows the TTO image size: 2 mm for a CPU's 128 px images, whose 1.5-footprint voxels
+    (1.9-2.8 mm) straddle the 2 mm level's bound, the 1 mm render grid for CUDA's 256 px; ``work_spacing_mm`` wins."""
+    from geopose.register.engine import finest_level_mm, start_case
+    from geopose.register.progress import Monitor
+
+    cta, _, _ = _small_volume()
+    fine = Volume(np.repeat(np.repeat(np.repeat(cta.array, 2, 0), 2, 1), 2, 2), cta.ijk_to_ras @ np.diag([0.5, 0.5 / 1.1, 0.4, 1]))
+    assert np.allclose(fine.spacing_mm, 1.0)
+    runs = phantom_case(6010, tmp_path / "runs", 4.0).runs
+    cpu = RegistrationOptions(backend="onnxruntime")
+    for options, finest_mm, factors in ((cpu, 2.0, (2, 2, 2)), (cpu.replace(**{"tto.px": 256}), 1.0, (1, 1, 1)),
+                                        (cpu.replace(work_spacing_mm=4.0), 4.0, (4, 4, 4))):
+        engine, case = start_case(fine, runs, options, None, cranium_mask=None, segmentation=None, dsa_masks=None,
+                                  monitor=Monitor())
+        assert max(case.views["pa"].tto_detector.shape) == (options.tto.px or 128)
+        # Pixel footprints of 1.27 mm (1.9 mm voxels at most): the 1 mm grid, or the floor's level.
+        assert case.volume.finest_spacing_mm == finest_mm and case.volume.factors_for(1.9) == factors
+        assert engine.describe(options, case)["finest_level_mm"] == finest_mm
+    assert finest_level_mm(128) == 2.0 and finest_level_mm(256) == 1.0
 
 
 def test_numpy_view_rule():

@@ -35,7 +35,7 @@ __all__ = ["OBJECTIVE_TIE", "Tournament", "chosen_result", "optimise_from_starts
 #: Objective difference (summed over both views) within which two TTO results tie; on a tie the
 #: DICOM angles' result is kept. Finalists' objectives on the 40 benchmark phantoms differ by at
 #: least 1.5e-3; a learned start that wins by 1e-5 is noise, and the acquisition's own geometry
-#: is the safer of two equal answers (docs/benchmark/bench.md, reading).
+#: is the safer of two equal answers (`git show 3967f60:docs/benchmark/bench.md`, its reading).
 OBJECTIVE_TIE = 1e-3
 
 

@@ -36,8 +36,8 @@ MAX_FACTOR = 8
 SLAB_SLICES = 16
 
 #: A CTA finer than this (mm) along an axis is rendered from its block means (:func:`render_factors`): no render samples
-#: a finer grid (the finest level is 2 mm on a CPU, about 1 mm at CUDA's 256 px), and the levels and masks of a 0.5 mm
-#: 512^3 CTA are made from an eighth of its voxels.
+#: a finer grid (a registration's finest level is 2 mm on a CPU, 1 mm at CUDA's 256 px: ``register/engine.py``
+#: ``finest_level_mm``), and the levels and masks of a 0.5 mm 512^3 CTA are made from an eighth of its voxels.
 RENDER_GRID_MM = 1.0
 
 #: A mask: a label Volume on the CTA grid (``> 0`` inside), or a function that computes one
@@ -92,8 +92,8 @@ class RenderVolume:
     """A CTA (HU) with its masks, prepared for rendering: :meth:`level` grids of density channels.
 
     ``masks`` maps channel names (``cranium``, ``vessels``) to a :data:`MaskSource` on the
-    CTA grid; a channel without a mask is all zeros. ``finest_spacing_mm`` bounds the
-    voxel size of the finest level from below (the CTA's own when None); ``scale``: the HU -> density
+    CTA grid; a channel without a mask is all zeros. the finest level sampled is the
+    coarsest whose voxels are at most ``finest_spacing_mm`` (the CTA's own grid when None); ``scale``: the HU -> density
     map (default: the CTA's own, :class:`DensityScale`); ``centred_to_ras``: the render (world) frame, 4x4 to RAS
     (default: the CTA's centred frame; the render grid of a finer CTA keeps that CTA's, :func:`render_factors`). The CTA
     array is read, never changed.
@@ -163,16 +163,14 @@ class RenderVolume:
     # ------------------------------------------------------------------ levels
 
     def factors_for(self, voxel_mm: float) -> tuple[int, int, int]:
-        """Power-of-two block factors (i, j, k) giving voxels no larger than ``voxel_mm``
-        (nor smaller than ``finest_spacing_mm``) per axis."""
+        """Power-of-two block factors (i, j, k) giving the largest voxels no larger than ``voxel_mm``, or than
+        ``finest_spacing_mm`` where that is larger, per axis."""
+        bound_mm = max(voxel_mm, self.finest_spacing_mm or 0.0)
         out = []
         for s in self.cta.spacing_mm:
             f = 1
-            while f * 2 <= MAX_FACTOR and f * 2 * s <= voxel_mm * (1 + 1e-6):
+            while f * 2 <= MAX_FACTOR and f * 2 * s <= bound_mm * (1 + 1e-6):
                 f *= 2
-            if self.finest_spacing_mm is not None:
-                while f * 2 <= MAX_FACTOR and f * s < self.finest_spacing_mm * (1 - 1e-6):
-                    f *= 2
             out.append(f)
         return tuple(out)
 
