@@ -61,10 +61,26 @@ def test_summary_averages_views_within_subjects_then_over_subjects():
     assert not target["view accuracy 100 %"]["met"]
     assert s["runtimes_s"]["calibrated Init (calibration + Init)"]["mean"] == pytest.approx(0.75)
     text = markdown(s, "# header")
-    assert "| calibrated Init (calibration + Init) | 0.75 (0.00) | 0.022 |" in text
+    assert "| calibrated Init (calibration + Init) | 0.75 (0.00) | 0.75 | 0.75 (a) | 0.022 |" in text
     assert f"| {FINAL} | 2 | 0.750 (0.071)" in text and "| NO |" in text
     assert "Refine 1, DICOM angles 1 (subjects)" in text
     assert "| ok | 0 | 2 | 1 |" in text and "| doubtful | 0 | 0 | 1 |" in text
+
+
+def test_the_slowest_case_is_measured_against_the_median():
+    """The total time's median and slowest case per stage, and the target: no case over twice the median."""
+    cases = [_case(name, {FINAL: {"pa": _view(0.8, 1.0), "lat": _view(0.8, 1.0)}}) for name in "abc"]
+    for case, total_s in zip(cases, (10.0, 12.0, 25.0)):
+        case["runtimes_s"]["total (biplane)"] = total_s
+    s = summarise(cases)
+    total = s["runtimes_s"]["total (biplane)"]
+    assert (total["median"], total["max"], total["slowest"]) == (12.0, 25.0, "c")
+    target = {t["target"].split(" (")[0]: t for t in s["targets"]}["no case slower than 2x the median"]
+    assert target["measured"] == pytest.approx(25.0 / 12.0) and not target["met"]
+    cases[2]["runtimes_s"]["total (biplane)"] = 24.0
+    target = {t["target"].split(" (")[0]: t for t in summarise(cases)["targets"]}["no case slower than 2x the median"]
+    assert target["met"]
+    assert "| total (biplane) | 15.33 (7.57) | 12.00 | 24.00 (c) |" in markdown(summarise(cases), "# header")
 
 
 def test_the_user_path_is_compared_with_its_truth_mask_upper_bound():
