@@ -76,6 +76,45 @@ def test_masks_are_made_only_when_a_render_needs_them_and_the_level_gains_them_u
         np.testing.assert_array_equal(level.density, eager.level(factors).density)
 
 
+def test_masks_made_ahead_on_another_thread_are_awaited_and_their_errors_raised_where_asked_for():
+    """``make_masks_ahead`` makes each mask once, off the calling thread; the renders of the total density go on
+    meanwhile, a render of a mask channel waits for it and equals one from a volume built with the masks; a mask
+    that cannot be made raises its own error where it is asked for, not on the other thread."""
+    import threading
+
+    from geopose.errors import InputError
+
+    cta, cranium, vessels = _small_volume()
+    release, made = threading.Event(), []
+
+    def slow_vessels() -> Volume:
+        release.wait(10.0)
+        made.append(threading.current_thread().name)
+        return vessels
+
+    ahead = RenderVolume(cta, {"cranium": cranium, "vessels": slow_vessels})
+    ahead.make_masks_ahead()
+    ahead.make_masks_ahead()  # nothing more to start
+    pose, det = isopose(C.VIEW_PA), Detector.model().resized(24)
+    ours = make_renderer(ahead, "numpy")
+    ours.render(pose, det, ("total",))  # does not wait for the vessel mask
+    assert made == []
+    release.set()
+    got = ours.render(pose, det, ("total", "cranium", "vessels"))
+    assert made == ["geopose-cta-masks"]
+    np.testing.assert_array_equal(got, make_renderer(RenderVolume(cta, {"cranium": cranium, "vessels": vessels}), "numpy")
+                                  .render(pose, det, ("total", "cranium", "vessels")))
+
+    def no_contrast() -> Volume:
+        raise InputError("no vessel in this CT")
+
+    failing = RenderVolume(cta, {"cranium": cranium, "vessels": no_contrast})
+    failing.make_masks_ahead()
+    assert failing.mask("cranium") is not None
+    with pytest.raises(InputError, match="no vessel in this CT"):
+        failing.mask("vessels")
+
+
 def test_levels_are_the_density_block_averaged_and_cropped():
     cta, cranium, vessels = _small_volume()
     volume = RenderVolume(cta, {"cranium": cranium, "vessels": vessels})

@@ -159,7 +159,8 @@ def start_case(
 ) -> tuple[Engine, PreparedCase]:
     """The engine ``options`` ask for and the case prepared for it (``case.py``; the TTO images at
     256 px on CUDA, 128 on a CPU, unless ``options.tto.px`` says; the finest level :func:`finest_level_mm`
-    unless ``options.work_spacing_mm`` says)."""
+    unless ``options.work_spacing_mm`` says); the CTA's masks are being made on another thread
+    (``RenderVolume.make_masks_ahead``)."""
     backend, device, model_set = resolve_engine(options, models)
     tto_px = options.tto.px or (TTO_PX_CUDA if device.startswith("cuda") else TTO_PX_CPU)
     case = prepare_case(
@@ -167,5 +168,6 @@ def start_case(
         model_clip_percentiles=options.model_clip_percentiles or model_set.clip_percentiles,
         work_spacing_mm=options.work_spacing_mm or finest_level_mm(tto_px), monitor=monitor,
     )
+    case.volume.make_masks_ahead()  # on another thread while calibration, Init, Refine and the search render
     renderer = make_renderer(case.volume, "torch" if backend == "torch" else "numpy", device)
     return Engine(renderer, model_set, options.render_px or model_set.render_px), case

@@ -4,8 +4,8 @@ By default the two runs are one biplane acquisition: one patient pose ``X`` plac
 (``T_v = X @ A_v``, ``A_v`` from each run's DICOM geometry; ``biplane.py``). The stages, each in
 its own module:
 
-1. ``engine.start_case``: the engine (renderer and networks) and the case: CTA masks and render
-   volume, each DSA run's MAP, cranium mask and preprocessed images (``case.py``);
+1. ``engine.start_case``: the engine (renderer and networks) and the case: CTA render volume (its
+   masks made on another thread meanwhile), each DSA run's MAP, cranium mask and preprocessed images (``case.py``);
 2. ``calibration.calibrate``: one DRR of the native CTA at the PA isopose and one Init pass give
    the canonical -> native frame transfer;
 3. ``init.biplane_init``: calibrated Init on each view's MAP, fused into one patient pose;
@@ -104,7 +104,7 @@ def register_case(
                                        monitor)
         estimate, X_learned, learned = SEARCHED_START, search.patient_pose, view_poses(search.patient_pose, rig)
     tournament, measured = None, None
-    with clock("tto", engine):  # the CTA's masks are made here, at the first render that needs them
+    with clock("tto", engine):  # the CTA's masks, begun on another thread at prepare, are awaited here
         monitor.step("tto", 0.0, "the CTA's cranium and vessel masks")
         vessel_evidence = case.vessel_evidence
         notes += [] if vessel_evidence else [NO_VESSELS_NOTE]

@@ -17,6 +17,8 @@ total channel and crop unchanged. numpy only.
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from typing import Callable, Mapping, Union
 
@@ -109,6 +111,7 @@ class RenderVolume:
         self.cta = cta
         self._mask_sources = dict(masks or {})
         self._masks: dict[str, np.ndarray] = {}
+        self._ahead: dict[str, Future] = {}
         self._voxels: dict[str, np.ndarray] = {}
         self.finest_spacing_mm = finest_spacing_mm
         self._levels: dict[tuple[int, int, int], Level] = {}
@@ -129,16 +132,41 @@ class RenderVolume:
         return CHANNELS
 
     def mask(self, name: str) -> np.ndarray | None:
-        """The ``[k, j, i]`` bool mask of channel ``name`` on the CTA grid (computed on first use), or None."""
+        """The ``[k, j, i]`` bool mask of channel ``name`` on the CTA grid (computed on first use, or awaited when
+        :meth:`make_masks_ahead` is making it), or None."""
+        if name in self._ahead:
+            self._ahead[name].result()  # its error, if making it failed
         if name not in self._masks:
             source = self._mask_sources.get(name)
             if source is None:
                 return None
-            vol = source() if callable(source) else source
-            if vol.array.shape != self.cta.array.shape:
-                raise ValueError(f"the {name} mask grid {vol.shape_ijk} differs from the CTA grid {self.cta.shape_ijk}")
-            self._masks[name] = np.asarray(vol.array) > 0
+            self._masks[name] = self._made(name, source)
         return self._masks[name]
+
+    def _made(self, name: str, source: MaskSource) -> np.ndarray:
+        vol = source() if callable(source) else source
+        if vol.array.shape != self.cta.array.shape:
+            raise ValueError(f"the {name} mask grid {vol.shape_ijk} differs from the CTA grid {self.cta.shape_ijk}")
+        return np.asarray(vol.array) > 0
+
+    def make_masks_ahead(self) -> None:
+        """Start making the masks not yet made on another thread, so that they are ready when a render needs them
+        (meanwhile the renders of the total density alone go on; the vessel mask of a 1 mm CTA takes about 2 s on 2
+        cores). :meth:`mask` waits for its mask; the masks are those made on first use."""
+        todo = {name: Future() for name, source in self._mask_sources.items()
+                if source is not None and name not in self._masks and name not in self._ahead}
+
+        def make() -> None:
+            for name, done in todo.items():
+                try:
+                    self._masks[name] = self._made(name, self._mask_sources[name])
+                    done.set_result(None)
+                except BaseException as error:  # raised again where the mask is asked for
+                    done.set_exception(error)
+
+        self._ahead |= todo
+        if todo:
+            threading.Thread(target=make, name="geopose-cta-masks", daemon=True).start()
 
     def mask_voxels(self, name: str) -> np.ndarray:
         """The ``[k, j, i]`` indices ``(N, 3)`` of channel ``name``'s mask voxels (none without a mask), found once."""
@@ -268,7 +296,8 @@ class RenderVolume:
         keep = np.zeros(self.cta.array.shape, dtype=bool)
         keep[tuple(kji.T)] = True
         out = RenderVolume(self.cta, finest_spacing_mm=self.finest_spacing_mm, centred_to_ras=self.centred_to_ras)
-        out._mask_sources, out._masks, out._scale = dict(self._mask_sources), dict(self._masks), self.scale
+        masks = {name: mask for name in self._mask_sources if (mask := self.mask(name)) is not None}
+        out._mask_sources, out._masks, out._scale = dict(self._mask_sources), masks, self.scale
         out._masks["vessels"] = keep
         out._voxels["vessels"] = kji
         values = out._scale.apply(self.cta.array[tuple(kji.T)])
