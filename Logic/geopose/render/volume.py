@@ -94,7 +94,7 @@ class RenderVolume:
     """A CTA (HU) with its masks, prepared for rendering: :meth:`level` grids of density channels.
 
     ``masks`` maps channel names (``cranium``, ``vessels``) to a :data:`MaskSource` on the
-    CTA grid; a channel without a mask is all zeros. the finest level sampled is the
+    CTA grid; a channel without a mask is all zeros. The finest level sampled is the
     coarsest whose voxels are at most ``finest_spacing_mm`` (the CTA's own grid when None); ``scale``: the HU -> density
     map (default: the CTA's own, :class:`DensityScale`); ``centred_to_ras``: the render (world) frame, 4x4 to RAS
     (default: the CTA's centred frame; the render grid of a finer CTA keeps that CTA's, :func:`render_factors`). The CTA
