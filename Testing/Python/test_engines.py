@@ -257,7 +257,7 @@ def test_a_registration_samples_no_finer_level_than_its_tto_images_need(tmp_path
         engine, case = start_case(fine, runs, options, None, cranium_mask=None, segmentation=None, dsa_masks=None,
                                   monitor=Monitor())
         assert max(case.views["pa"].tto_detector.shape) == (options.tto.px or 128)
-        # Pixel footprints of 1.27 mm (1.9 mm voxels at most): the 1 mm grid, or the floor's level.
+        # Pixel footprints of 1.27 mm (1.9 mm voxels at most): the 1 mm grid, or the option's level.
         assert case.volume.finest_spacing_mm == finest_mm and case.volume.factors_for(1.9) == factors
         assert engine.describe(options, case)["finest_level_mm"] == finest_mm
     assert finest_level_mm(128) == 2.0 and finest_level_mm(256) == 1.0

@@ -20,6 +20,9 @@ from .continuation import CONTINUE_TURN_DEG, CONTINUED_START
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 14: ``engine.finest_level_mm`` (the finest CTA level the renderers sample, ``register/engine.finest_level_mm``
+#: unless the option ``work_spacing_mm`` set it), and that option's meaning: a bound on the level's voxels, no
+#: longer a floor on each axis.
 #: 13: ``engine.cta_render_grid_mm`` (the voxel size of the grid the CTA is rendered on: its own, or its block means
 #: where it is finer than ``render.volume.RENDER_GRID_MM``) and the option ``estimate_voxel_per_pixel``.
 #: 12: ``registration.tto_stopped_behind`` (a finalist of the TTO's tournament stopped after the coarse steps: how
@@ -52,7 +55,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 13
+SCHEMA_VERSION = 14
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
