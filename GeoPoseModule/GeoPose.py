@@ -107,11 +107,14 @@ def checkSlicerVersion() -> None:
         raise InputError(MINIMUM_SLICER_TEXT)
 
 
-def runOffGuiThread(work: Callable, progress: Optional[Callable[[str, float, str], None]] = None):
-    """``work(report)`` on a worker thread while this (GUI) thread processes Qt events every :data:`GUI_POLL_S`
-    and passes the worker's latest ``report(stage, fraction, message)`` on to ``progress``
-    (``geopose.background.run_in_background``): Qt and MRML are touched only here, never by ``work``."""
-    return background.run_in_background(work, slicer.app.processEvents, GUI_POLL_S, progress, name="GeoPose registration")
+def runOffGuiThread(work: Callable, progress: Optional[Callable[[str, float, str], None]] = None,
+                    deliver: Optional[Callable] = None):
+    """``work(report)`` (``work(report, hand_over)`` with ``deliver``) on a worker thread while this (GUI) thread
+    processes Qt events every :data:`GUI_POLL_S`, passes the worker's latest ``report(stage, fraction, message)`` on
+    to ``progress`` and each ``hand_over(item)`` to ``deliver(item)`` (``geopose.background.run_in_background``):
+    Qt and MRML are touched only here, never by ``work``."""
+    return background.run_in_background(work, slicer.app.processEvents, GUI_POLL_S, progress, name="GeoPose registration",
+                                        deliver=deliver)
 
 
 class GeoPose(ScriptedLoadableModule):
@@ -129,7 +132,8 @@ class GeoPose(ScriptedLoadableModule):
             "test-time optimisation of a DRR similarity. Outputs one transform, camera and "
             "projected vessel segmentation per view, the DSA runs on their detector planes "
             "and a table of similarity, quality flag and runtimes; Apply again updates the same "
-            "output nodes. Without PyTorch, Init and Refine run on onnxruntime with a numpy "
+            "output nodes. While the test-time optimisation runs, the output nodes already show the "
+            "networks' estimate (their pose transforms marked preliminary). Without PyTorch, Init and Refine run on onnxruntime with a numpy "
             "renderer and the test-time optimisation is skipped. Needs 3D Slicer 5.8 or later; "
             "PyTorch (test-time optimisation) needs Slicer 5.10 or later. "
             "Without a vessel segmentation the arteries are found by a contrast threshold (an "
@@ -207,6 +211,8 @@ class GeoPoseWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._untaggedGuiNode = None
         self._cancelRequested = False
         self._running = False
+        self._shownText = ""
+        self._shownOutputs = None
 
     def setup(self) -> None:
         ScriptedLoadableModuleWidget.setup(self)
@@ -332,7 +338,15 @@ class GeoPoseWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 self.ui.statusLabel.text = str(exc)
                 slicer.util.errorDisplay(str(exc), windowTitle=failure)
             except RegistrationCancelled:
-                self.ui.statusLabel.text = _("Cancelled: no output node was changed.")
+                self.ui.statusLabel.text = self._keepShownOnCancel()
+
+    def _keepShownOnCancel(self) -> str:
+        """After a cancelled registration: the output nodes that show its networks' estimate, if it got that far,
+        are referenced from the parameter node (their poses stay marked preliminary). Returns the status line."""
+        if self._shownOutputs is None:
+            return _("Cancelled: no output node was changed.")
+        self.logic.setOutputNodes(self._parameterNode, self._shownOutputs)
+        return _("Cancelled: the output nodes keep the networks' estimate (preliminary, not optimised).")
 
     def onImportDSA(self, key: str) -> None:
         path = qt.QFileDialog.getOpenFileName(
@@ -357,7 +371,14 @@ class GeoPoseWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         if self._cancelRequested:
             return  # the status says "Cancelling..." until the worker stops
         self.ui.progressBar.value = int(100 * fraction)
-        self.ui.statusLabel.text = f"{stage}: {message}"
+        self.ui.statusLabel.text = "\n".join(s for s in (self._shownText, f"{stage}: {message}") if s)
+
+    def _shown(self, preliminary, outputs: dict) -> None:
+        """The networks' estimate is in the output nodes (called on the GUI thread while the registration goes on)."""
+        self._shownText = _("Showing the networks' estimate ({seconds:.1f} s); the test-time optimisation refines it.").format(
+            seconds=preliminary.elapsed_s)
+        self._shownOutputs = dict(outputs)
+        self.ui.statusLabel.text = self._shownText
 
     def onApplyButton(self) -> None:
         """Register with the panel's inputs and options. The computation runs off the GUI thread
@@ -367,6 +388,7 @@ class GeoPoseWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             return
         p = self._parameterNode
         self._cancelRequested = False
+        self._shownText, self._shownOutputs = "", None
         self._setRunning(True)
         self.ui.statusLabel.text = _("Starting the registration...")
         try:
@@ -382,7 +404,7 @@ class GeoPoseWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                     cta=p.cta, dsaPA=p.dsaPA, dsaLAT=p.dsaLAT, segmentation=p.segmentation, craniumMask=p.craniumMask,
                     options=options, overridesPA=self.logic.overridesFromParameters(p, "pa"),
                     overridesLAT=self.logic.overridesFromParameters(p, "lat"), outputs=self.logic.outputNodes(p),
-                    progress=self._progress, cancel=lambda: self._cancelRequested, offGuiThread=True,
+                    progress=self._progress, cancel=lambda: self._cancelRequested, offGuiThread=True, shown=self._shown,
                 )
                 self.logic.setOutputNodes(p, outputs)
                 self.ui.resultsTableView.setMRMLTableNode(outputs["table"])
@@ -528,9 +550,10 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
 
     @staticmethod
     def setOutputNodes(p: GeoPoseParameterNode, outputs: dict) -> None:
-        """Reference the output nodes of :meth:`register` from the parameter node (saved with the scene)."""
+        """Reference the output nodes of :meth:`register` from the parameter node (saved with the scene); without a
+        table (the nodes of a preliminary result) none is referenced."""
         with slicer.util.NodeModify(p):
-            p.resultsTable = outputs["table"]
+            p.resultsTable = outputs.get("table")
             for key, title in VIEWS.items():
                 for field, suffix in OUTPUT_FIELDS.items():
                     setattr(getattr(p, "outputs" + title), field, outputs.get(key + suffix))
@@ -553,7 +576,8 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
     def register(self, cta, dsaPA, dsaLAT, segmentation=None, craniumMask=None, options: Optional[RegistrationOptions] = None,
                  models=None, overridesPA: Optional[dict] = None, overridesLAT: Optional[dict] = None,
                  outputs: Optional[dict] = None, progress: Optional[Callable[[str, float, str], None]] = None,
-                 cancel: Optional[Callable[[], bool]] = None, offGuiThread: bool = False) -> dict:
+                 cancel: Optional[Callable[[], bool]] = None, offGuiThread: bool = False,
+                 shown: Optional[Callable] = None) -> dict:
         """Register ``cta`` (scalar volume, HU) to the PA and lateral DSA runs (sequence or
         volume nodes) with ``options`` (default ``RegistrationOptions()``). Input nodes are not
         modified. Returns the output nodes by key: ``{pa,lat}{Pose,Camera,Frustum,DSA,DSABrowser,
@@ -563,7 +587,9 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         updated in place instead of new ones. ``offGuiThread``: the computation (between reading the
         input nodes and writing the output nodes, which stay on this thread) runs on a worker thread
         while this thread processes Qt events (:func:`runOffGuiThread`); ``progress`` is then called
-        on this thread."""
+        on this thread, and the output nodes show the networks' estimate as soon as it exists (their pose
+        transforms' ``GeoPose.result`` attribute says "preliminary" until the end), after which
+        ``shown(preliminary, outputs)`` is called."""
         checkSlicerVersion()
         options = options if options is not None else RegistrationOptions()
         if options.backend == "torch" and not self.torchAvailable():
@@ -577,7 +603,8 @@ class GeoPoseLogic(ScriptedLoadableModuleLogic):
         out = mrml.register_nodes(
             slicer.mrmlScene, cta, dsaPA, dsaLAT, segmentation, craniumMask, options, models or self.defaultModelsFolder(),
             overrides={"pa": overridesPA, "lat": overridesLAT}, outputs=outputs, progress=progress, cancel=cancel,
-            run=runOffGuiThread if offGuiThread else None, tick=slicer.app.processEvents if offGuiThread else None)
+            run=runOffGuiThread if offGuiThread else None, tick=slicer.app.processEvents if offGuiThread else None,
+            shown=shown)
         for note in out["result"].notes:
             logging.warning(note)
         return out

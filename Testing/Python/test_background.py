@@ -38,3 +38,38 @@ def test_the_workers_error_is_raised_on_the_caller():
     with pytest.raises(KeyError, match="inside"):
         run_in_background(work, lambda: polls.append(1), 0.01)
     assert polls  # polled once after the worker ended, at least
+
+
+def test_handed_over_results_reach_the_caller_in_order_none_skipped():
+    """Results handed over in a burst (faster than the poll) all arrive, in order, on the calling thread, before the
+    work ends; progress reports in between may be skipped, they may not."""
+    caller = threading.current_thread()
+    delivered, ended = [], threading.Event()
+
+    def work(report, hand_over):
+        for n in range(5):
+            hand_over(n)
+            report("stage", n / 4, "")
+        time.sleep(0.1)  # the caller polls meanwhile: the items arrive while the work still runs
+        ended.set()
+        return "done"
+
+    result = run_in_background(work, lambda: None, 0.01, None,
+                               deliver=lambda item: delivered.append((item, threading.current_thread() is caller,
+                                                                      ended.is_set())))
+    assert result == "done"
+    assert [item for item, _, _ in delivered] == [0, 1, 2, 3, 4]
+    assert all(on_caller and not late for _, on_caller, late in delivered)
+
+
+def test_an_error_in_showing_a_handed_over_result_does_not_stop_the_work(caplog):
+    def work(report, hand_over):
+        hand_over("early")
+        time.sleep(0.05)
+        return "done"
+
+    def deliver(item):
+        raise RuntimeError("no scene")
+
+    assert run_in_background(work, lambda: None, 0.01, None, name="test worker", deliver=deliver) == "done"
+    assert "could not show a result handed over by test worker" in caplog.text

@@ -462,3 +462,34 @@ def test_node_roles_and_read_inputs_checks(scene, tmp_path):
     assert inputs.runs["pa"].angles == run.angles and inputs.runs["lat"].angles.primary_deg == -90.0
     np.testing.assert_array_equal(inputs.labels.array, (lab.array == 1).astype(inputs.labels.array.dtype))
     assert inputs.segments == {1: ("vessel", (1.0, 0.0, 0.0))} and inputs.cranium is None
+
+
+def test_preliminary_nodes_show_the_estimate_and_the_result_moves_them(scene):
+    """The networks' estimate in the view nodes (pose, camera, C-arm, run, projection; no MAP, no table), marked
+    preliminary; the final result then moves the same nodes and marks them final."""
+    from geopose.register.progress import Preliminary
+
+    cta, labels = _cta()
+    segments = {1: ("vessel", (1.0, 0.0, 0.0))}
+    runs = {"pa": _run(0.0), "lat": _run(-90.0)}
+    inputs = mrml.RegistrationInputs(cta, runs, labels, segments)
+    estimate = {"pa": _pose(C.VIEW_PA, dt=(9.0, 1.0, -4.0)), "lat": _pose(C.VIEW_LAT_PLUS, dt=(-6.0, 2.0, 5.0))}
+    early = mrml.preliminary_nodes(scene, inputs, Preliminary("estimate", estimate, 4.2))
+    assert set(early) == {f"{k}{s}" for k in ("pa", "lat") for s in mrml.OUTPUT_KEYS if s != "MAP"}
+    for key in ("pa", "lat"):
+        np.testing.assert_allclose(mrml.transform_matrix(early[f"{key}Pose"]), cta.centred_to_ras @ estimate[key], atol=1e-9)
+        assert early[f"{key}Pose"].GetAttribute(mrml.RESULT_ATTRIBUTE) == mrml.PRELIMINARY_RESULT
+        want = mrml.project_labels(labels, [1], estimate[key], RUN_DET)[0]
+        got, names = mrml.labelmap_from_segmentation(early[f"{key}Projection"], early[f"{key}DSA"].GetNthDataNode(0), ["vessel"])
+        np.testing.assert_array_equal(got.array[0] == names["vessel"], want)
+    before = {scene.GetNthNode(n).GetID() for n in range(scene.GetNumberOfNodes())}
+    poses = {"pa": _pose(C.VIEW_PA), "lat": _pose(C.VIEW_LAT_PLUS)}
+    out = mrml.result_nodes(scene, inputs, _result(poses), outputs=early)
+    assert all(out[k] is early[k] for k in early)
+    added = {scene.GetNthNode(n) for n in range(scene.GetNumberOfNodes())} - {scene.GetNodeByID(i) for i in before}
+    owners = {out["paMAP"], out["latMAP"], out["table"]}
+    assert {node.GetID() for node in added} == {node.GetID() for node in owners} | {
+        node.GetDisplayNodeID() for node in (out["paMAP"], out["latMAP"])}  # the MAPs (with their display) and the table
+    for key in ("pa", "lat"):
+        np.testing.assert_allclose(mrml.transform_matrix(out[f"{key}Pose"]), cta.centred_to_ras @ poses[key], atol=1e-9)
+        assert out[f"{key}Pose"].GetAttribute(mrml.RESULT_ATTRIBUTE) == mrml.FINAL_RESULT

@@ -54,8 +54,16 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
     result = register_case(
         cta, runs, models=oracle_models(init, refine), segmentation=labels.like(L.vessel_mask(labels.array).astype(np.uint8)),
         options=RegistrationOptions(backend="torch", device="cpu", tto=TTOSchedule(px=128)),
-        progress=lambda stage, f, msg: stages.append(stage),
+        progress=lambda stage, f, msg: stages.append(stage), preliminary=stages.append,
     )
+    # The networks' estimate (the searched pose) was handed over once, before the TTO began, as the record gives it.
+    handed = [s for s in stages if not isinstance(s, str)]
+    assert len(handed) == 1 and handed[0].stage == "estimate"
+    assert "search" in stages[:stages.index(handed[0])] and "tto" not in stages[:stages.index(handed[0])]
+    assert "tto" in stages[stages.index(handed[0]):]
+    for key in ("pa", "lat"):
+        np.testing.assert_array_equal(handed[0].poses[key], result.views[key].stage_poses["search"])
+    assert 0.0 < handed[0].elapsed_s < result.runtimes_s["total"]
     # Calibration recovers the canonical->native transfer exactly (it is inverse(N)); the
     # calibration image is the min-max DRR in the model geometry, rendered at the models' size.
     np.testing.assert_allclose(result.calibration.frame_transfer, np.linalg.inv(N), atol=1e-6)
@@ -72,7 +80,7 @@ def test_oracle_registration_calibration_greedy_and_tto(phantom_case):
         np.testing.assert_allclose(view.refine.pose[:3, 3], start[key][:3, 3], atol=0.5)
     assert refine.answered == 2 * 9  # both views once from each of the nine combined starts
     assert result.registration.refine_start in result.registration.refine_starts
-    assert {"prepare", "calibration", "init", "refine", "search", "tto", "done"} <= set(stages)
+    assert {"prepare", "calibration", "init", "refine", "search", "tto", "done"} <= {s for s in stages if isinstance(s, str)}
     assert result.engine["render_px"] == ORACLE_RENDER_PX
     metrics = truth_metrics(result, runs, load_truth(case / "cta.nii.gz"))
     for key in ("pa", "lat"):

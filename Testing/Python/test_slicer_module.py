@@ -534,6 +534,53 @@ def test_cancel_stops_the_run_without_an_error_and_changes_no_output(newest, pha
     assert "PA: mNCC" in w.ui.statusLabel.text and shown == []
 
 
+def test_the_networks_estimate_is_shown_while_the_tto_runs_and_the_result_moves_the_same_nodes(newest, phantom):
+    """Apply with the TTO: the output nodes show the networks' estimate (pose transforms marked preliminary, the
+    status saying so) while the registration goes on; the end moves those nodes, marked final, to the result
+    (here the estimate again: the trust rule keeps it on this coarse 4 mm phantom)."""
+    w = _panel_on_phantom(newest, phantom, iterations=3)
+    w._parameterNode.backend = "torch"
+    scene, seen = slicer.mrmlScene, []
+    shown = w._shown
+
+    def record(preliminary, outputs):
+        shown(preliminary, outputs)
+        seen.append((preliminary, dict(outputs), mrml.transform_matrix(outputs["paPose"]),
+                     outputs["paPose"].GetAttribute(mrml.RESULT_ATTRIBUTE), w.ui.statusLabel.text, w._running))
+
+    w._shown = record
+    w.ui.applyButton.click()
+    assert len(seen) == 1
+    preliminary, nodes, matrix, which, status, running = seen[0]
+    assert running and which == mrml.PRELIMINARY_RESULT and "Showing the networks' estimate" in status
+    cta = mrml.volume_from_node(w._parameterNode.cta)
+    np.testing.assert_allclose(matrix, cta.centred_to_ras @ preliminary.poses["pa"], atol=1e-9)
+    final = w.logic.outputNodes(w._parameterNode)
+    assert all(final[k] is nodes[k] for k in final if k in nodes)  # the same nodes, now at the result
+    assert final["paPose"].GetAttribute(mrml.RESULT_ATTRIBUTE) == mrml.FINAL_RESULT and "PA: mNCC" in w.ui.statusLabel.text
+    assert scene.GetNodesByName("GeoPose PA pose").GetNumberOfItems() == 1
+
+
+def test_cancel_after_the_estimate_was_shown_keeps_it_marked_preliminary(newest, phantom):
+    """Cancel once the networks' estimate is shown (the TTO running): no error, the parameter node references the
+    nodes that show it, their poses still marked preliminary, and the status says the result was not optimised."""
+    w = _panel_on_phantom(newest, phantom, iterations=3)
+    w._parameterNode.backend = "torch"
+    shown = w._shown
+
+    def cancel_when_shown(preliminary, outputs):
+        shown(preliminary, outputs)
+        w.onCancelButton()
+
+    w._shown = cancel_when_shown
+    w.ui.applyButton.click()
+    assert w.ui.statusLabel.text == "Cancelled: the output nodes keep the networks' estimate (preliminary, not optimised)."
+    kept = w.logic.outputNodes(w._parameterNode)
+    assert kept["paPose"].GetAttribute(mrml.RESULT_ATTRIBUTE) == mrml.PRELIMINARY_RESULT and "table" not in kept
+    assert w._parameterNode.resultsTable is None and not w.ui.showPAButton.enabled  # no MAP yet
+    assert w.ui.applyButton.enabled and not w.ui.cancelButton.enabled
+
+
 def test_the_gui_processes_events_every_half_second_during_a_registration(newest, phantom):
     """The registration runs off the GUI thread: the GUI thread processes events at least every
     0.5 s from the click to the end (the times Qt's event processing was called, on the phantom

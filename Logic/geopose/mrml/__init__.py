@@ -52,6 +52,9 @@ from .outputs import (
 )
 from .registration import (
     OUTPUT_KEYS,
+    FINAL_RESULT,
+    PRELIMINARY_RESULT,
+    RESULT_ATTRIBUTE,
     VIEW_KEYS,
     VIEW_TITLES,
     RegistrationInputs,
@@ -60,6 +63,7 @@ from .registration import (
     geometry_overrides,
     is_dsa_image,
     read_dsa_node,
+    preliminary_nodes,
     read_inputs,
     register_nodes,
     result_nodes,
@@ -79,6 +83,7 @@ __all__ = [
     "segment_colors", "segmentation_from_labelmap", "segmentation_from_masks", "set_geometry_attributes", "volume_from_node", "volume_to_node",
     "sequences_logic", "transform_matrix", "plane_axes",
     "OUTPUT_KEYS", "VIEW_KEYS", "VIEW_TITLES", "RegistrationInputs", "dsa_image_ids", "first_cta_candidate",
-    "geometry_overrides", "is_dsa_image", "read_dsa_node", "read_inputs", "register_nodes", "result_nodes", "result_rows",
+    "geometry_overrides", "is_dsa_image", "preliminary_nodes", "read_dsa_node", "read_inputs", "register_nodes",
+    "result_nodes", "result_rows", "FINAL_RESULT", "PRELIMINARY_RESULT", "RESULT_ATTRIBUTE",
     "result_summary", "run_from_node", "segmentation_labels",
 ]

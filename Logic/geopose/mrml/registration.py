@@ -5,7 +5,8 @@ node with its ``GeoPose.*`` geometry attributes, :func:`run_from_node`), the opt
 segmentation and cranium mask on the CTA grid. Outputs (:func:`result_nodes`): per view key
 (``pa``, ``lat``) the pose transform (camera-to-RAS), camera, C-arm frustum, the run on its
 registered detector plane, the MAP and the projected segmentation, and one results table
-(:func:`result_rows`). :func:`register_nodes` does all three steps around ``register_case``. Node roles for a front end's selectors: :func:`is_dsa_image`,
+(:func:`result_rows`); the same nodes at the networks' estimate while the registration goes on
+(:func:`preliminary_nodes`). :func:`register_nodes` does these steps around ``register_case``. Node roles for a front end's selectors: :func:`is_dsa_image`,
 :func:`dsa_image_ids`, :func:`first_cta_candidate`. The Slicer module (``GeoPoseModule``) is a
 panel over these; they run in plain Python with the ``slicer-core`` wheel as well.
 """
@@ -31,7 +32,8 @@ from .volumes import labelmap_from_segmentation, segment_colors, volume_from_nod
 __all__ = [
     "VIEW_KEYS", "VIEW_TITLES", "OUTPUT_KEYS", "RegistrationInputs", "is_dsa_image", "dsa_image_ids",
     "first_cta_candidate", "geometry_overrides", "run_from_node", "read_dsa_node", "segmentation_labels",
-    "read_inputs", "result_rows", "result_nodes", "result_summary", "register_nodes",
+    "read_inputs", "result_rows", "preliminary_nodes", "result_nodes", "result_summary", "register_nodes",
+    "RESULT_ATTRIBUTE", "PRELIMINARY_RESULT", "FINAL_RESULT",
 ]
 
 VIEW_TITLES = {"pa": "PA", "lat": "LAT"}
@@ -194,33 +196,63 @@ def result_rows(result, runs: Mapping[str, DSARun]) -> list[dict[str, Any]]:
     return rows
 
 
+#: Attribute of each view's pose transform node: which result it holds (:data:`PRELIMINARY_RESULT`, :data:`FINAL_RESULT`).
+RESULT_ATTRIBUTE = "GeoPose.result"
+PRELIMINARY_RESULT = "networks' estimate (preliminary: the test-time optimisation is running)"
+FINAL_RESULT = "final"
+
+
+def _view_nodes(scene, inputs: RegistrationInputs, key: str, pose, given: Mapping[str, Any], out: dict[str, Any],
+                which: str, prepared_map: np.ndarray | None = None) -> None:
+    """Into ``out``: view ``key``'s pose transform (its :data:`RESULT_ATTRIBUTE` set to ``which``), camera, C-arm,
+    the run on its detector plane, the projected segmentation (with a segmentation) and, given ``prepared_map``, the
+    MAP, all placed at ``pose`` (camera-to-world, centred native CTA frame, mm); ``given`` nodes are updated in place."""
+    run, title, cta = inputs.runs[key], VIEW_TITLES[key], inputs.cta
+    pose = _matrix(pose)
+    pose_ras = pose_to_patient(pose, cta.ijk_to_ras, cta.shape_ijk)
+    det, name = run.detector, f"GeoPose {title}"
+    out[f"{key}Pose"] = pose_transform_node(scene, pose_ras, f"{name} pose", node=given.get(f"{key}Pose"))
+    out[f"{key}Pose"].SetAttribute(RESULT_ATTRIBUTE, which)
+    out[f"{key}Camera"] = camera_node(scene, pose_ras, det, f"{name} camera", node=given.get(f"{key}Camera"))
+    out[f"{key}Frustum"] = frustum_model_node(scene, pose_ras, det, f"{name} C-arm", node=given.get(f"{key}Frustum"))
+    out[f"{key}DSA"], out[f"{key}DSABrowser"] = dsa_sequence_node(
+        scene, run.frames, det, pose_ras, f"{name} DSA", frame_time_s=_frame_time_s(run), angles=run.angles,
+        node=given.get(f"{key}DSA"))
+    if prepared_map is not None:
+        out[f"{key}MAP"] = plane_volume_node(scene, prepared_map, det, pose_ras, f"{name} MAP", node=given.get(f"{key}MAP"))
+        set_geometry_attributes(out[f"{key}MAP"], det, run.angles, _frame_time_s(run))
+    if inputs.labels is not None and inputs.segments:
+        out[f"{key}Projection"] = projected_segmentation_node(
+            scene, inputs.labels, inputs.segments, pose, det, f"{name} projected segmentation",
+            node=given.get(f"{key}Projection"))
+
+
+def preliminary_nodes(scene, inputs: RegistrationInputs, preliminary, outputs: Mapping[str, Any] | None = None,
+                      tick: Callable[[], None] | None = None) -> dict[str, Any]:
+    """The nodes of a result the registration reached before its end (``preliminary``: a
+    ``geopose.register.progress.Preliminary``), so that the user sees it meanwhile: per view the pose transform,
+    camera, C-arm, run and projected segmentation of :func:`result_nodes` (not the MAP or the table), the pose
+    transform's :data:`RESULT_ATTRIBUTE` saying it is preliminary. ``outputs``: existing nodes, updated in place;
+    pass the returned ones to :func:`result_nodes`, which moves them to the final result."""
+    given, out = dict(outputs or {}), dict(outputs or {})
+    for key in VIEW_KEYS:
+        _view_nodes(scene, inputs, key, preliminary.poses[key], given, out, PRELIMINARY_RESULT)
+        if tick is not None:
+            tick()
+    return out
+
+
 def result_nodes(scene, inputs: RegistrationInputs, result, outputs: Mapping[str, Any] | None = None,
                  tick: Callable[[], None] | None = None) -> dict[str, Any]:
     """The output nodes of a registration result by key (``{pa,lat}`` + :data:`OUTPUT_KEYS`, ``table``;
     ``Projection`` only with a segmentation). ``outputs``: existing nodes by the same keys, updated in place
     instead of new ones; ``tick()`` is called after each view's nodes. Poses go to RAS about the CTA's grid
     centre (``geometry.frames.pose_to_patient``, as the result record's ``pose_ras``)."""
-    given = dict(outputs or {})
+    given: dict[str, Any] = dict(outputs or {})
     out: dict[str, Any] = {}
-    cta = inputs.cta
     for key in VIEW_KEYS:
-        run, title = inputs.runs[key], VIEW_TITLES[key]
-        pose = _matrix(result.views[key].final_pose)
-        pose_ras = pose_to_patient(pose, cta.ijk_to_ras, cta.shape_ijk)
-        det, name = run.detector, f"GeoPose {title}"
-        out[f"{key}Pose"] = pose_transform_node(scene, pose_ras, f"{name} pose", node=given.get(f"{key}Pose"))
-        out[f"{key}Camera"] = camera_node(scene, pose_ras, det, f"{name} camera", node=given.get(f"{key}Camera"))
-        out[f"{key}Frustum"] = frustum_model_node(scene, pose_ras, det, f"{name} C-arm", node=given.get(f"{key}Frustum"))
-        out[f"{key}DSA"], out[f"{key}DSABrowser"] = dsa_sequence_node(
-            scene, run.frames, det, pose_ras, f"{name} DSA", frame_time_s=_frame_time_s(run), angles=run.angles,
-            node=given.get(f"{key}DSA"))
-        out[f"{key}MAP"] = plane_volume_node(scene, result.views[key].prepared.map, det, pose_ras, f"{name} MAP",
-                                             node=given.get(f"{key}MAP"))
-        set_geometry_attributes(out[f"{key}MAP"], det, run.angles, _frame_time_s(run))
-        if inputs.labels is not None and inputs.segments:
-            out[f"{key}Projection"] = projected_segmentation_node(
-                scene, inputs.labels, inputs.segments, pose, det, f"{name} projected segmentation",
-                node=given.get(f"{key}Projection"))
+        view = result.views[key]
+        _view_nodes(scene, inputs, key, view.final_pose, given, out, FINAL_RESULT, prepared_map=view.prepared.map)
         if tick is not None:
             tick()
     out["table"] = result_table_node(scene, result_rows(result, inputs.runs), "GeoPose results", node=given.get("table"))
@@ -237,13 +269,18 @@ def result_summary(table) -> str:
 def register_nodes(scene, cta, dsa_pa, dsa_lat, segmentation=None, cranium_mask=None, options=None, models=None,
                    overrides: Mapping[str, Mapping] | None = None, outputs: Mapping[str, Any] | None = None,
                    progress: Callable[[str, float, str], None] | None = None, cancel: Callable[[], bool] | None = None,
-                   run: Callable | None = None, tick: Callable[[], None] | None = None) -> dict[str, Any]:
+                   run: Callable | None = None, tick: Callable[[], None] | None = None,
+                   shown: Callable[[Any, dict[str, Any]], None] | None = None) -> dict[str, Any]:
     """Register the CTA volume node to the PA and lateral DSA run nodes: :func:`read_inputs`, then
     ``geopose.register.register_case`` (``options``, ``models``, ``progress``, ``cancel`` as it takes them;
     the CTA checked by ``validate_cta`` first), then :func:`result_nodes` into ``scene``. Returns the output
     nodes by key, ``result`` (the library's result) and ``record`` (``result.json``'s content). ``run(compute,
-    progress)``: runs ``compute(report)`` (the part that touches no node) and returns its result, e.g. on a
-    worker thread (default: ``compute(progress)`` here); ``tick()`` is called between the node reads and writes."""
+    progress, deliver)``: runs ``compute(report, hand_over)`` (the part that touches no node) and returns its
+    result, e.g. on a worker thread, passing each ``hand_over(item)`` to ``deliver(item)`` on this thread
+    (``geopose.background.run_in_background``); the networks' estimate is handed over that way, written into the
+    output nodes at once (:func:`preliminary_nodes`) and then passed with them to ``shown(preliminary, nodes)``.
+    Without ``run`` the registration runs here and only its final result is written. ``tick()`` is called between
+    the node reads and writes."""
     from ..cta import validate_cta
     from ..register.pipeline import register_case
     from ..register.record import build_record
@@ -251,13 +288,20 @@ def register_nodes(scene, cta, dsa_pa, dsa_lat, segmentation=None, cranium_mask=
     inputs = read_inputs(cta, dsa_pa, dsa_lat, segmentation, cranium_mask, overrides, outputs, tick)
     name = cta.GetName()
 
-    def compute(report):
+    nodes = dict(outputs or {})
+
+    def compute(report, hand_over=None):
         validate_cta(inputs.cta, name=f"CTA {name!r}")
         return register_case(inputs.cta, inputs.runs, models=models, options=options, cranium_mask=inputs.cranium,
-                             segmentation=inputs.labels, progress=report, cancel=cancel)
+                             segmentation=inputs.labels, progress=report, cancel=cancel, preliminary=hand_over)
 
-    result = run(compute, progress) if run is not None else compute(progress)
-    out = result_nodes(scene, inputs, result, outputs, tick)
+    def deliver(preliminary) -> None:
+        nodes.update(preliminary_nodes(scene, inputs, preliminary, nodes, tick))
+        if shown is not None:
+            shown(preliminary, nodes)
+
+    result = run(compute, progress, deliver) if run is not None else compute(progress)
+    out = result_nodes(scene, inputs, result, nodes, tick)
     out["result"] = result
     out["record"] = build_record(result, inputs.runs, inputs={"cta": {"node": name}})
     return out

@@ -13,7 +13,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "case": ("VIEW_KEYS", "PreparedCase", "prepare_case"),
         "engine": ("NO_TORCH_TTO_NOTE", "resolve_engine"),
         "pipeline": ("register_case",),
-        "progress": ("ConsoleProgress", "Monitor", "RegistrationCancelled"),
+        "progress": ("ConsoleProgress", "Monitor", "Preliminary", "RegistrationCancelled"),
         "quality": ("Quality", "assess"),
         "refine": ("greedy_refine", "refine_from_starts"),
         "scoring": ("score_view",),

@@ -113,9 +113,13 @@ class StageClock:
         self.times[name] = time.perf_counter() - t0
         self.work[name] = work.as_dict(self.times[name])
 
+    def elapsed_s(self) -> float:
+        """Seconds since the clock started."""
+        return time.perf_counter() - self.start
+
     def total(self) -> dict[str, float]:
         """The stage times with ``total``, the seconds since the clock started."""
-        return self.times | {"total": time.perf_counter() - self.start}
+        return self.times | {"total": self.elapsed_s()}
 
 
 def resolve_engine(

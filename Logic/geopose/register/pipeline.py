@@ -12,7 +12,7 @@ its own module:
 4. ``refine.refine_from_starts``: similarity-gated greedy Refine from every combination of the
    Init estimates' rotations and isocentres (``starts.refine_starts``), the most similar end kept;
 5. ``search.similarity_search``: the patient pose's shift and in-plane turns by the same score;
-   its result is the networks' estimate;
+   its result is the networks' estimate, handed to ``preliminary`` (a front end shows it meanwhile);
 6. ``starts.candidate_starts`` and ``tournament.run_tournament``: the test-time optimisation
    (PyTorch; skipped with a note without it) from every distinct candidate start, the result of
    lowest objective kept, the DICOM angles' on a tie; ``continuation.continued``: a result that turned far from
@@ -46,7 +46,7 @@ from .engine import NO_TORCH_TTO_NOTE, StageClock, engine_notes, start_case
 from .evidence import view_evidence
 from .init import biplane_init
 from .mirror import mirror_test
-from .progress import CancelCheck, Monitor, ProgressCallback
+from .progress import CancelCheck, Monitor, Preliminary, PreliminaryCallback, ProgressCallback
 from .published import register_published
 from .refine import refine_from_starts
 from .results import CaseRegistration, Registration
@@ -70,6 +70,7 @@ def register_case(
     dsa_masks: Mapping[str, np.ndarray] | None = None,
     progress: ProgressCallback | None = None,
     cancel: CancelCheck | None = None,
+    preliminary: PreliminaryCallback | None = None,
 ) -> CaseRegistration:
     """Register a native CTA (HU) to ``dsa = {"pa": run, "lat": run}``.
 
@@ -78,12 +79,15 @@ def register_case(
     (:class:`geopose.options.RegistrationOptions`). Masks are optional label volumes on the
     CTA grid (computed from the CTA when absent). ``progress(stage, fraction, message)`` is
     called throughout; ``cancel()`` returning True stops at the next step
-    (:class:`~geopose.register.progress.RegistrationCancelled`). Returns every pose and trace.
+    (:class:`~geopose.register.progress.RegistrationCancelled`). ``preliminary(result)`` receives the networks'
+    estimate as soon as it exists (a :class:`~geopose.register.progress.Preliminary`), before the test-time
+    optimisation. Returns every pose and trace.
     """
     options = options or RegistrationOptions()
     masks = {"cranium_mask": cranium_mask, "segmentation": segmentation, "dsa_masks": dsa_masks}
     if options.independent_views:
-        return register_published(cta, dsa, models=models, options=options, progress=progress, cancel=cancel, **masks)
+        return register_published(cta, dsa, models=models, options=options, progress=progress, cancel=cancel,
+                                  preliminary=preliminary, **masks)
     monitor, clock, notes, rig = Monitor(progress, cancel), StageClock(), engine_notes(), nominal_poses(dsa)
     with clock("prepare"):
         engine, case = start_case(cta, dsa, options, models, monitor=monitor, **masks)
@@ -103,6 +107,8 @@ def register_case(
             search = similarity_search(estimator, case.model_targets(), X_learned, rig, render_px, options.search.schedule,
                                        monitor)
         estimate, X_learned, learned = SEARCHED_START, search.patient_pose, view_poses(search.patient_pose, rig)
+    if preliminary is not None:
+        preliminary(Preliminary("estimate", {key: np.array(pose) for key, pose in learned.items()}, clock.elapsed_s()))
     tournament, measured = None, None
     with clock("tto", engine):  # the CTA's masks, begun on another thread at prepare, are awaited here
         monitor.step("tto", 0.0, "the CTA's cranium and vessel masks")

@@ -1,14 +1,35 @@
-"""Progress reporting and cancellation shared by every registration stage."""
+"""Progress reporting, cancellation and the result delivered before the end, shared by every registration stage."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Mapping, Optional
+
+import numpy as np
 
 #: ``progress(stage, fraction_done, message)``; fraction in [0, 1] within the stage.
 ProgressCallback = Callable[[str, float, str], None]
 #: Returns True when the user asked to stop.
 CancelCheck = Callable[[], bool]
+
+
+
+
+@dataclass(frozen=True)
+class Preliminary:
+    """A pose per view the registration has reached before it ends, for a front end to show meanwhile.
+
+    ``stage``: what made it (``"estimate"``: the networks' estimate, before the test-time optimisation);
+    ``poses``: ``{view: (4, 4)}`` float64 camera-to-world in the centred native CTA frame (mm), as the final
+    result's; ``elapsed_s``: seconds since the registration started."""
+
+    stage: str
+    poses: Mapping[str, np.ndarray]
+    elapsed_s: float
+
+
+#: ``preliminary(result)``: called once per :class:`Preliminary` result, on the registration's thread.
+PreliminaryCallback = Callable[[Preliminary], None]
 
 
 class RegistrationCancelled(RuntimeError):
