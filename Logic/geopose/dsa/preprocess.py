@@ -16,7 +16,7 @@ import SimpleITK as sitk
 from .. import contract as C
 from ..geometry.detector import Detector
 from ..errors import InputError
-from ..images import bilinear_sample, block_mean, disc_filter, gaussian_blur, normalize_minmax, wide_gaussian_blur
+from ..images import block_mean, blur_and_sample_grid, disc_filter, normalize_minmax, wide_gaussian_blur
 from ..options import check_clip_percentiles
 from .run import DSARun
 
@@ -155,13 +155,17 @@ def resample_to_detector(image: np.ndarray, source: Detector, target: Detector) 
     image = np.asarray(image, dtype=np.float32)
     if image.shape != source.shape:
         raise InputError(f"image {image.shape} does not match the source detector {source.shape}")
-    src_rc = source.camera_to_pixel(target.camera_points())
+    # A target pixel's source row depends on its row alone, its column on its column (same axes): sample a grid.
+    src_rows = source.camera_to_pixel(target.pixel_to_camera(np.stack((np.arange(target.rows, dtype=np.float64),
+                                                                       np.zeros(target.rows)), axis=-1)))[:, 0]
+    src_cols = source.camera_to_pixel(target.pixel_to_camera(np.stack((np.zeros(target.cols),
+                                                                       np.arange(target.cols, dtype=np.float64)), axis=-1)))[:, 1]
     ratio = (  # target pixel size projected onto the source plane, in source pixels
         target.spacing_mm[0] * source.sdd_mm / (target.sdd_mm * source.spacing_mm[0]),
         target.spacing_mm[1] * source.sdd_mm / (target.sdd_mm * source.spacing_mm[1]),
     )
-    smooth = gaussian_blur(image.astype(np.float64), tuple(0.5 * r if r > 1 else 0.0 for r in ratio))
-    return bilinear_sample(smooth, src_rc[..., 0], src_rc[..., 1]).astype(np.float32)
+    sigma_px = tuple(0.5 * r if r > 1 else 0.0 for r in ratio)
+    return blur_and_sample_grid(image, src_rows, src_cols, sigma_px).astype(np.float32)
 
 
 def resample_to_model_sdd(image: np.ndarray, detector: Detector, model: Detector | None = None) -> np.ndarray:
