@@ -83,13 +83,13 @@ TORCH_REQUIREMENT, TORCH_MINIMUM_PYTHON = _torch_requirement()
 #: docs/benchmark/bench.md (42 held-out phantoms, 1 mm; the user's path: no segmentation given, rows "biplane:
 #: greedy Refine + search" and "+ 25 TTO"; with the phantoms' labels given: the "upper bound (truth masks)" row);
 #: the time: the 1 mm demo phantom on the 2-core VM, torch against the torch-free path (docs/pipeline_benchmark.md,
-#: 2026-12-06, session 48: 14.4 against 7.5 s).
+#: 2026-12-06, session 49: 12.3 against 6.1 s).
 TTO_BENEFIT = (
     "Without PyTorch, GeoPose runs Init, Refine and the similarity search and skips the test-time "
     "optimisation (TTO), which refines both poses against the DSA runs. On 42 held-out phantom cases (1 mm CTAs) "
     "registered from the CTA and the two runs alone (vessels found in the CTA by GeoPose), the TTO took the mean "
     "carotid error at the detector from 3.2 mm to 1.0 mm; given each case's own vessel segmentation it reached "
-    "0.7 mm (an upper bound). It adds about 7 s per registration on a 2-core CPU (less on a GPU)."
+    "0.7 mm (an upper bound). It adds about 6 s per registration on a 2-core CPU (less on a GPU)."
 )
 
 
