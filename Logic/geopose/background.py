@@ -22,7 +22,8 @@ def run_in_background(work: Callable[..., Any], poll: Callable[[], None], interv
     after the worker ends) and passes the latest ``report(*args)`` of the worker on to ``progress(*args)``
     (each new report once; reports in between are skipped). With ``deliver``, ``work(report, hand_over)`` is
     called instead and every ``hand_over(item)`` reaches ``deliver(item)`` on this thread, in order, none skipped,
-    before the next ``poll()`` (an error in ``deliver`` is logged, the work goes on). Returns what ``work`` returns, or raises what it raised, on this thread."""
+    before the next ``poll()`` (an error in ``deliver`` is logged, the work goes on). Returns what ``work`` returns,
+    or raises what it raised, on this thread."""
     lock = threading.Lock()
     latest: dict = {}
     outcome: dict = {}
