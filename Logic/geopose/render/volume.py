@@ -152,7 +152,9 @@ class RenderVolume:
     def make_masks_ahead(self) -> None:
         """Start making the masks not yet made on another thread, so that they are ready when a render needs them
         (meanwhile the renders of the total density alone go on; the vessel mask of a 1 mm CTA takes about 2 s on 2
-        cores). :meth:`mask` waits for its mask; the masks are those made on first use."""
+        cores). :meth:`mask` waits for its mask; the masks are those made on first use. The thread is no daemon: an
+        interpreter that exits meanwhile waits for it (killed inside a SimpleITK filter, it printed "FATAL: exception
+        not rethrown")."""
         todo = {name: Future() for name, source in self._mask_sources.items()
                 if source is not None and name not in self._masks and name not in self._ahead}
 
@@ -166,7 +168,7 @@ class RenderVolume:
 
         self._ahead |= todo
         if todo:
-            threading.Thread(target=make, name="geopose-cta-masks", daemon=True).start()
+            threading.Thread(target=make, name="geopose-cta-masks").start()
 
     def mask_voxels(self, name: str) -> np.ndarray:
         """The ``[k, j, i]`` indices ``(N, 3)`` of channel ``name``'s mask voxels (none without a mask), found once."""
