@@ -46,7 +46,7 @@ from .engine import NO_TORCH_TTO_NOTE, StageClock, engine_notes, start_case
 from .evidence import view_evidence
 from .init import biplane_init
 from .mirror import mirror_test
-from .progress import CancelCheck, Monitor, Preliminary, PreliminaryCallback, ProgressCallback
+from .progress import CancelCheck, Monitor, PreliminaryCallback, ProgressCallback, hand_over_estimate
 from .published import register_published
 from .refine import refine_from_starts
 from .results import CaseRegistration, Registration
@@ -107,8 +107,7 @@ def register_case(
             search = similarity_search(estimator, case.model_targets(), X_learned, rig, render_px, options.search.schedule,
                                        monitor)
         estimate, X_learned, learned = SEARCHED_START, search.patient_pose, view_poses(search.patient_pose, rig)
-    if preliminary is not None:
-        preliminary(Preliminary("estimate", {key: np.array(pose) for key, pose in learned.items()}, clock.elapsed_s()))
+    hand_over_estimate(preliminary, learned, clock.elapsed_s())
     tournament, measured = None, None
     with clock("tto", engine):  # the CTA's masks, begun on another thread at prepare, are awaited here
         monitor.step("tto", 0.0, "the CTA's cranium and vessel masks")

@@ -32,6 +32,12 @@ class Preliminary:
 PreliminaryCallback = Callable[[Preliminary], None]
 
 
+def hand_over_estimate(preliminary: Optional[PreliminaryCallback], poses: Mapping[str, np.ndarray], elapsed_s: float) -> None:
+    """Give ``preliminary`` (when there is one) the networks' estimate ``poses`` (copied) as a :class:`Preliminary`."""
+    if preliminary is not None:
+        preliminary(Preliminary("estimate", {key: np.array(pose) for key, pose in poses.items()}, elapsed_s))
+
+
 class RegistrationCancelled(RuntimeError):
     """Raised inside a stage when the cancel hook returns True."""
 

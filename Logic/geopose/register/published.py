@@ -23,7 +23,7 @@ from .case import VIEW_KEYS
 from .engine import NO_TORCH_TTO_NOTE, StageClock, engine_notes, start_case
 from .init import init_views
 from .objective import PAPER_OBJECTIVE
-from .progress import CancelCheck, Monitor, Preliminary, PreliminaryCallback, ProgressCallback
+from .progress import CancelCheck, Monitor, PreliminaryCallback, ProgressCallback, hand_over_estimate
 from .refine import greedy_refine
 from .results import CaseRegistration, Registration
 from .scoring import score_views
@@ -52,8 +52,7 @@ def register_published(
                                       engine.models.refine, engine.render_px, options.refine.steps, monitor)
                    for key in VIEW_KEYS}
     learned = {key: refined[key].pose for key in VIEW_KEYS}
-    if preliminary is not None:
-        preliminary(Preliminary("estimate", {key: np.array(pose) for key, pose in learned.items()}, clock.elapsed_s()))
+    hand_over_estimate(preliminary, learned, clock.elapsed_s())
     finals, tto = dict(learned), None
     with clock("tto", engine):
         if options.tto.iterations > 0 and engine.tto_renderer is None:
