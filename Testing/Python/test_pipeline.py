@@ -222,9 +222,15 @@ def test_weak_image_evidence_keeps_the_networks_estimate(tmp_path, capsys):
     segmentation = tmp_path / "vessels.nii.gz"
     from geopose.cta import save_volume
     save_volume(labels.like(L.vessel_mask(labels.array).astype(np.uint8)), segmentation)
+    handed = []
     record = register_files(case / "cta.nii.gz", case / "dsa_pa.dcm", case / "dsa_lat.dcm", tmp_path / "out",
-                            segmentation=segmentation, options=RegistrationOptions(device="cpu", backend="torch"))
+                            segmentation=segmentation, options=RegistrationOptions(device="cpu", backend="torch"),
+                            estimate=handed.append)
     assert any("where the LAT run shows none" in note for note in record["notes"])
+    # The networks' estimate was handed over once with the CTA and runs read (what the browser app shows meanwhile).
+    assert len(handed) == 1 and set(handed[0].runs) == {"pa", "lat"} and handed[0].cta.shape_ijk == labels.shape_ijk
+    for key in ("pa", "lat"):
+        np.testing.assert_allclose(handed[0].preliminary.poses[key], record["views"][key]["stages"]["search"]["pose_centred"])
     for key in ("pa", "lat"):
         view = record["views"][key]
         assert view["truth"]["final"]["mpcd_mm"] == pytest.approx(view["truth"]["search"]["mpcd_mm"])

@@ -199,24 +199,28 @@ def _progress_text(page) -> str:
     return page.locator("#progress-text").inner_text() if page.locator("#progress-text").count() else ""
 
 
-def _progress_samples(page, until, timeout_s: float, stale: str = "") -> list[tuple[float, str]]:
+def _progress_samples(page, until, timeout_s: float, stale: str = "", watch: str = "") -> tuple[list[tuple[float, str]], str]:
     """(time, progress text) whenever the page's progress text changes, until ``until()`` is true; ``stale``:
-    the text an earlier run left, not sampled until the page has shown another."""
+    the text an earlier run left, not sampled until the page has shown another. Also the text of the element
+    ``watch`` (a selector) when it first appears meanwhile ("" if it does not)."""
     samples: list[tuple[float, str]] = []
+    watched = ""
     deadline = time.perf_counter() + timeout_s
     while time.perf_counter() < deadline and not until():
         text = _progress_text(page)
         if text and (not samples or samples[-1][1] != text) and (samples or text != stale):
             samples.append((time.perf_counter(), text))
+        if watch and not watched and page.locator(watch).count():
+            watched = page.locator(watch).inner_text()
         page.wait_for_timeout(100)
-    return samples
+    return samples, watched
 
 
 def test_register_cancel_and_review_the_demo_case_in_chromium(chromium, phantom_case, tmp_path):
     out = tmp_path / "runs"
     shutil.copytree(phantom_case, out / "demo_case")  # what the Demo case button writes (here at 2 mm), so it is reused
     server = ViewServer("--out", str(out), "--port", str(_free_port()),
-                        "--backend", "onnxruntime", "--iterations", "0")
+                        "--backend", "onnxruntime", "--iterations", "4")
     try:
         page = chromium.new_page()
         page_errors: list[str] = []
@@ -243,12 +247,14 @@ def test_register_cancel_and_review_the_demo_case_in_chromium(chromium, phantom_
         page.wait_for_selector("text=registration cancelled", timeout=120000)
         assert not (out / "run-1" / "result.json").exists()
 
-        # the registration: progress keeps moving while it runs, then the result
+        # the registration: progress keeps moving while it runs, the networks' estimate is shown in the 3D view before the
+        # TTO (marked preliminary), then the result replaces it
         cancelled_run = _progress_text(page)  # the cancelled run's last progress, until the new run's first
         page.click("#btn-register")
-        samples = _progress_samples(page, lambda: page.locator(".quality-flag").count() > 0, timeout_s=400,
-                                    stale=cancelled_run)
+        samples, estimate = _progress_samples(page, lambda: page.locator(".quality-flag").count() > 0, timeout_s=400,
+                                              stale=cancelled_run, watch="#estimate")
         page.wait_for_selector(".quality-flag", timeout=60000)
+        assert "preliminary: the networks' estimate" in estimate and page.locator("#estimate").count() == 0, estimate
         times = [t for t, _ in samples]
         gaps = np.diff(times)
         print(f"progress: {len(samples)} updates, longest gap {gaps.max():.2f} s")

@@ -10,6 +10,7 @@ import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -23,7 +24,7 @@ from ..outputs import OutputFolder
 from .evaluate import truth_for, truth_metrics
 from .engine import resolve_engine
 from .pipeline import register_case
-from .progress import CancelCheck, ConsoleProgress, ProgressCallback
+from .progress import CancelCheck, ConsoleProgress, Preliminary, ProgressCallback
 from .record import build_record
 from .report import OVERLAY_NAMES, write_overlays
 from .results import CaseRegistration
@@ -120,6 +121,16 @@ class FileRegistration:
     carotid_mm: np.ndarray | None
 
 
+@dataclass(frozen=True)
+class FileEstimate:
+    """The networks' estimate of a registration of files, handed over before the TTO (``preliminary``: the poses per view
+    in the CTA's centred frame, seconds since the start) with what was read: the CTA and the DSA runs by view key."""
+
+    preliminary: Preliminary
+    cta: object
+    runs: dict
+
+
 def register_files(cta_path: str | Path, dsa_pa: str | Path, dsa_lat: str | Path, out: str | Path, **kwargs) -> dict:
     """Read the files, register, and write the overlays and then ``result.json`` into ``out``; returns the record
     (:func:`register_and_write` takes the same arguments)."""
@@ -143,6 +154,7 @@ def register_and_write(
     allow_id_mismatch: bool = False,
     progress: ProgressCallback | None = None,
     cancel: CancelCheck | None = None,
+    estimate: Callable[[FileEstimate], None] | None = None,
 ) -> FileRegistration:
     """Read the files, register, and write the overlays and then ``result.json`` into ``out``.
 
@@ -151,7 +163,9 @@ def register_and_write(
     or is killed leaves no ``result.json``. Before any work the inputs are read and checked to belong
     together (:func:`~geopose.consistency.check_inputs_belong_together`). A ``truth.json`` next to the
     CTA (a ``geopose phantom`` case) adds accuracy metrics; one that is not that CTA's is ignored with a
-    note. ``overrides[view]`` are ``read_dsa`` keywords. Without ``progress`` a console bar is drawn.
+    note. ``overrides[view]`` are ``read_dsa`` keywords. Without ``progress`` a console bar is drawn. ``estimate``
+    receives the networks' estimate with the CTA and runs read (:class:`FileEstimate`), on the registration's thread,
+    while the TTO has still to run.
     """
     options = options or RegistrationOptions()
     overrides = overrides or {}
@@ -170,8 +184,9 @@ def register_and_write(
         _, _, model_set = resolve_engine(options, models, allow_unverified=allow_unverified_models)
         bar = ConsoleProgress() if progress is None else None
         try:
+            handed = None if estimate is None else (lambda p: estimate(FileEstimate(p, cta, runs)))
             case = register_case(cta, runs, models=model_set, options=options, cranium_mask=cranium, segmentation=seg,
-                                 progress=progress or bar, cancel=cancel)
+                                 progress=progress or bar, cancel=cancel, preliminary=handed)
         finally:
             if bar is not None:
                 bar.finish()

@@ -1,5 +1,6 @@
-"""The page: inputs, Register / Cancel with a progress bar, the 3D view (trame-slicer), each DSA view's
-overlay, the quality flags and the stages, and saving. Needs the ``web`` extra.
+"""The page: inputs, Register / Cancel with a progress bar, the 3D view (trame-slicer: the networks' estimate as soon
+as it is handed over, marked preliminary, then the result), each DSA view's overlay, the quality flags and the
+stages, and saving. Needs the ``web`` extra.
 
 All scene and VTK work runs on the server's event loop; the registration and the reading of a result
 folder run in worker threads (:class:`~.session.Session`), and a ticker on the loop pushes their
@@ -79,7 +80,7 @@ class GeoPoseViewApp:
         state.update({"case_dir": "", "cta_file": "", "pa_file": "", "lat_file": "", "result_dir": "", **fields})
         state.update({"status": "idle", "error": "", "stage": "", "message": "", "fraction": 0.0, "elapsed": "",
                       "overlays": [], "quality": [], "stages": [], "saved": "", "result_folder": "",
-                      "notes": [], "views_ready": False})
+                      "notes": [], "views_ready": False, "estimate": ""})
         self._build_ui()
 
     def attach_views(self) -> "asyncio.Future":
@@ -114,7 +115,7 @@ class GeoPoseViewApp:
         except InputError as exc:
             self.server.state.error = error_line(exc)
             return
-        self.server.state.status = "running"
+        self.server.state.status, self.server.state.estimate = "running", ""
         asyncio.ensure_future(self._follow_registration())
 
     async def demo_case(self) -> None:
@@ -142,20 +143,43 @@ class GeoPoseViewApp:
 
     async def _follow_registration(self) -> None:
         state = self.server.state
+        shown = None
         while self.session.status == "running":
             p = self.session.progress
             with state:
                 state.stage, state.message, state.fraction = p.stage, p.message[:90], round(100 * p.fraction, 1)
                 state.elapsed = f"{self.session.elapsed_s():.1f} s"
+            if self.session.estimate is not None and self.session.estimate is not shown:
+                shown = self.session.estimate
+                await self._show_estimate(shown)
             await asyncio.sleep(TICK_S)
+        if self.session.status == "cancelled" and self.session.estimate is not None and self.session.estimate is not shown:
+            await self._show_estimate(self.session.estimate)
         with state:
             state.status = self.session.status
             state.error = self.session.error
             if self.session.status == "cancelled":
-                state.message = "registration cancelled"
+                state.message = "registration cancelled" + (": the 3D view keeps the networks' estimate (preliminary)"
+                                                            if self.session.estimate is not None else "")
             if self.session.status == "done":
                 await self.attach_views()
                 self._show(self.session.review)
+
+    async def _show_estimate(self, estimate) -> None:
+        """Show the networks' estimate of the running registration (a ``FileEstimate``) in the 3D view, marked
+        preliminary, and clear the previous result's panels (its folder, overlays, flags and stages)."""
+        from ..dsa import temporal_map
+        from .scene import show_estimate
+
+        maps = await asyncio.get_running_loop().run_in_executor(
+            None, lambda: {key: temporal_map(run.frames) for key, run in estimate.runs.items()})
+        await self.attach_views()
+        state = self.server.state
+        with state:
+            show_estimate(self.slicer_app, estimate, maps)
+            state.result_folder, state.overlays, state.quality, state.stages, state.notes, state.saved = "", [], [], [], [], ""
+            state.estimate = (f"preliminary: the networks' estimate ({estimate.preliminary.elapsed_s:.1f} s), shown in the 3D view "
+                              "while the registration refines it")
 
     async def open_result(self) -> None:
         state = self.server.state
@@ -182,7 +206,7 @@ class GeoPoseViewApp:
         state.quality = quality_rows(review.record)
         state.stages = stage_rows(review.record)
         state.notes = list(review.record.get("notes", []))
-        state.saved = ""
+        state.saved, state.estimate = "", ""
 
     def save_scene(self) -> None:
         from .scene import save_scene
@@ -235,6 +259,7 @@ class GeoPoseViewApp:
                                   id="field-result")
                     v3.VBtn("Open result", click=self.open_result, id="btn-open",
                             disabled=("status === 'running' || status === 'loading'",))
+                    v3.VAlert(text=("estimate",), type="info", density="compact", v_if="estimate", id="estimate")
                     v3.VAlert(text=("error",), type="error", density="compact", v_if="error", id="error")
                     html.Div("result: {{ result_folder }}", classes="text-caption", id="result-folder", v_if="result_folder")
                     v3.VDivider()

@@ -1,7 +1,7 @@
-"""The MRML scene the page's 3D view shows for a :class:`~.session.Review`, built with the
-:mod:`geopose.mrml` adapters: the CTA (volume rendering), per view the pose transform, the C-arm
-frustum, the DSA MAP as a texture on its detector plane and as a plane volume (what a saved
-scene keeps), and saving the scene (.mrb) and the transforms.
+"""The MRML scene the page's 3D view shows for a :class:`~.session.Review`, or for the networks' estimate while
+the registration runs on, built with the :mod:`geopose.mrml` adapters: the CTA (volume rendering), per view the
+pose transform, the C-arm frustum, the DSA MAP as a texture on its detector plane and as a plane volume (what a
+saved scene keeps), and saving the scene (.mrb) and the transforms.
 """
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ import numpy as np
 
 from .. import mrml
 from ..errors import InputError
+from ..geometry.frames import pose_to_patient
 
-__all__ = ["VIEW_COLOURS", "VR_PRESET", "show_review", "save_scene", "save_transforms"]
+__all__ = ["VIEW_COLOURS", "VR_PRESET", "show_estimate", "show_review", "save_scene", "save_transforms"]
 
 #: Frustum colour per view key (rgb 0-1).
 VIEW_COLOURS = {"pa": (0.25, 0.55, 1.0), "lat": (0.2, 0.85, 0.35)}
@@ -21,33 +22,49 @@ VIEW_COLOURS = {"pa": (0.25, 0.55, 1.0), "lat": (0.2, 0.85, 0.35)}
 VR_PRESET = "CT-Chest-Contrast-Enhanced"
 
 
-def _title(record: dict, key: str) -> str:
-    return record["views"][key].get("role", key.upper())
-
-
 def show_review(slicer_app, review) -> dict:
     """Replace the scene's contents with ``review``'s nodes; returns them by name (``cta``, ``<key>Pose``,
-    ``<key>Frustum``, ``<key>Image``, ``<key>MAP``)."""
+    ``<key>Frustum``, ``<key>Image``, ``<key>MAP``). The camera keeps its place when the scene showed the same
+    registration's estimate (:func:`show_estimate`)."""
+    views = {key: (view.get("role", key.upper()), np.asarray(view["pose_ras"], dtype=float))
+             for key, view in review.record["views"].items()}
+    return _show(slicer_app, review.cta, views, review.maps, review.detectors)
+
+
+def show_estimate(slicer_app, estimate, maps: dict[str, np.ndarray]) -> dict:
+    """Replace the scene's contents with the nodes of the networks' estimate of a registration still running
+    (``estimate``: a :class:`~geopose.register.cli.FileEstimate`; ``maps``: each run's MAP), named as
+    :func:`show_review` names them with "(estimate)" in the titles."""
+    cta = estimate.cta
+    views = {key: (f"{run.view_role} (estimate)", pose_to_patient(estimate.preliminary.poses[key], cta.ijk_to_ras, cta.shape_ijk))
+             for key, run in estimate.runs.items()}
+    return _show(slicer_app, cta, views, maps, {key: run.detector for key, run in estimate.runs.items()})
+
+
+def _show(slicer_app, cta, views: dict[str, tuple[str, np.ndarray]], maps: dict[str, np.ndarray], detectors: dict) -> dict:
+    """The scene of the CTA and, per view key, its title and camera-to-RAS pose (mm), MAP and detector. The camera is
+    placed only when the scene had no pose before."""
     scene = slicer_app.scene
+    shown_before = bool(list(scene.GetNodesByClass("vtkMRMLLinearTransformNode")))
     for cls in ("vtkMRMLScalarVolumeNode", "vtkMRMLModelNode", "vtkMRMLLinearTransformNode"):
         for node in list(scene.GetNodesByClass(cls)):
             scene.RemoveNode(node)
-    nodes = {"cta": mrml.volume_to_node(scene, review.cta, "CTA")}
+    nodes = {"cta": mrml.volume_to_node(scene, cta, "CTA")}
     nodes["cta"].CreateDefaultDisplayNodes()
     slicer_app.display_manager.show_volume(nodes["cta"], vr_preset=VR_PRESET)
-    for key, view in review.record["views"].items():
-        pose_ras = np.asarray(view["pose_ras"], dtype=float)
-        det, title = review.detectors[key], _title(review.record, key)
+    for key, (title, pose_ras) in views.items():
+        det = detectors[key]
         nodes[f"{key}Pose"] = mrml.pose_transform_node(scene, pose_ras, f"GeoPose {title} pose")
         nodes[f"{key}Frustum"] = mrml.frustum_model_node(scene, pose_ras, det, f"GeoPose {title} C-arm", VIEW_COLOURS.get(key, (1, 1, 0)))
-        nodes[f"{key}Image"] = mrml.detector_image_model_node(scene, review.maps[key], det, pose_ras, f"GeoPose {title} DSA on detector")
-        nodes[f"{key}MAP"] = mrml.plane_volume_node(scene, review.maps[key], det, pose_ras, f"GeoPose {title} MAP")
+        nodes[f"{key}Image"] = mrml.detector_image_model_node(scene, maps[key], det, pose_ras, f"GeoPose {title} DSA on detector")
+        nodes[f"{key}MAP"] = mrml.plane_volume_node(scene, maps[key], det, pose_ras, f"GeoPose {title} MAP")
         nodes[f"{key}MAP"].GetDisplayNode().SetVisibility(False)
     for view in slicer_app.view_manager.get_threed_views():
-        view.reset_camera()
-        view.renderer().GetActiveCamera().Elevation(20)
-        view.renderer().GetActiveCamera().Azimuth(35)
-        view.renderer().ResetCamera()
+        if not shown_before:
+            view.reset_camera()
+            view.renderer().GetActiveCamera().Elevation(20)
+            view.renderer().GetActiveCamera().Azimuth(35)
+            view.renderer().ResetCamera()
         view.schedule_render()
     return nodes
 

@@ -139,12 +139,15 @@ class Session:
     """One registration at a time, run by :meth:`start` in a worker thread.
 
     ``status`` is ``idle``, ``running``, ``done``, ``cancelled`` or ``error`` (``error`` holds the
-    one-line message); ``review`` the finished result.
+    one-line message); ``estimate`` the networks' estimate of the running (or cancelled) registration once it is
+    handed over, before the TTO (a :class:`~geopose.register.cli.FileEstimate`; None before); ``review`` the
+    finished result.
     """
 
     out: Path
     status: str = "idle"
     error: str = ""
+    estimate: object = None
     review: Review | None = None
     progress: Progress = field(default_factory=Progress)
     _cancel: threading.Event = field(default_factory=threading.Event)
@@ -158,6 +161,7 @@ class Session:
             raise InputError("a registration is running: wait for it or cancel it")
         self._cancel.clear()
         self.status, self.error, self.progress = "running", "", Progress("starting", 0.0, "reading the inputs")
+        self.estimate = None
         self._started = time.perf_counter()
         self._thread = threading.Thread(target=self._run, args=(files, options), name="geopose-register", daemon=True)
         self._thread.start()
@@ -171,6 +175,9 @@ class Session:
 
     def _report(self, stage: str, fraction: float, message: str) -> None:
         self.progress = Progress(stage, fraction, message, self.elapsed_s())
+
+    def _hand_over(self, estimate) -> None:
+        self.estimate = estimate
 
     def next_folder(self) -> Path:
         """``out/run-N`` for the first N not yet used."""
@@ -186,7 +193,8 @@ class Session:
         folder = self.next_folder()
         try:
             done = register_and_write(files.cta, files.dsa_pa, files.dsa_lat, folder, segmentation=files.segmentation,
-                                      options=options, progress=self._report, cancel=self._cancel.is_set)
+                                      options=options, progress=self._report, cancel=self._cancel.is_set,
+                                      estimate=self._hand_over)
         except RegistrationCancelled:
             self.status = "cancelled"
             return
