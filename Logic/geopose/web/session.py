@@ -11,11 +11,15 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import InputError
 from ..outputs import RECORD_NAME
+
+if TYPE_CHECKING:  # the registration's modules load when a registration starts
+    from ..register.cli import FileEstimate
 
 __all__ = ["CaseFiles", "Review", "Session", "case_files", "error_line", "files_from_fields", "review_from_folder"]
 
@@ -147,7 +151,7 @@ class Session:
     out: Path
     status: str = "idle"
     error: str = ""
-    estimate: object = None
+    estimate: "FileEstimate | None" = None
     review: Review | None = None
     progress: Progress = field(default_factory=Progress)
     _cancel: threading.Event = field(default_factory=threading.Event)
@@ -176,7 +180,7 @@ class Session:
     def _report(self, stage: str, fraction: float, message: str) -> None:
         self.progress = Progress(stage, fraction, message, self.elapsed_s())
 
-    def _hand_over(self, estimate) -> None:
+    def _hand_over(self, estimate: "FileEstimate") -> None:
         self.estimate = estimate
 
     def next_folder(self) -> Path:
