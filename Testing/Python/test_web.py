@@ -93,6 +93,28 @@ def test_case_folders_and_result_folders_are_checked(tmp_path):
         review_from_folder(tmp_path)
 
 
+def test_a_session_cancelled_after_the_estimate_keeps_it_and_writes_no_result(tmp_path):
+    """The page's worker (no browser): a registration of the shipped 2 mm phantom case cancelled as soon as the networks'
+    estimate is handed over ends "cancelled" with that estimate (poses per view, the CTA and runs read) and no result."""
+    from geopose.options import RegistrationOptions
+    from geopose.web.session import Session
+
+    class CancelledOnEstimate(Session):
+        def _hand_over(self, estimate) -> None:
+            super()._hand_over(estimate)
+            self.cancel()
+
+    case = REPO / "Resources" / "Testing" / "phantom_seed0_2mm"
+    session = CancelledOnEstimate(tmp_path / "runs")
+    session.start(case_files(case), RegistrationOptions(backend="onnxruntime"))
+    session._thread.join(300)
+    assert session.status == "cancelled" and session.review is None, (session.status, session.error)
+    estimate = session.estimate
+    assert set(estimate.preliminary.poses) == set(estimate.runs) == {"pa", "lat"}
+    assert estimate.cta.array.ndim == 3 and 0.0 < estimate.preliminary.elapsed_s < session.elapsed_s()
+    assert not (tmp_path / "runs" / "run-1" / "result.json").exists()
+
+
 # ------------------------------------------------------------------ the app in a browser
 def _browser_or_skip() -> str:
     missing = [p for p in ("trame", "trame_slicer", "playwright") if importlib.util.find_spec(p) is None]

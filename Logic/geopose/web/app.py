@@ -153,15 +153,18 @@ class GeoPoseViewApp:
                 shown = self.session.estimate
                 await self._show_estimate(shown)
             await asyncio.sleep(TICK_S)
-        if self.session.status == "cancelled" and self.session.estimate is not None and self.session.estimate is not shown:
-            await self._show_estimate(self.session.estimate)
+        estimate, status = self.session.estimate, self.session.status
+        kept = estimate is not None and status in ("cancelled", "error")  # the estimate stays in the 3D view
+        if kept and estimate is not shown:
+            await self._show_estimate(estimate)
         with state:
-            state.status = self.session.status
-            state.error = self.session.error
-            if self.session.status == "cancelled":
-                state.message = "registration cancelled" + (": the 3D view keeps the networks' estimate (preliminary)"
-                                                            if self.session.estimate is not None else "")
-            if self.session.status == "done":
+            state.status, state.error = status, self.session.error
+            if status == "cancelled":
+                state.message = "registration cancelled" + (": the 3D view keeps the networks' estimate" if kept else "")
+            if kept:
+                state.estimate = (f"preliminary: the networks' estimate ({estimate.preliminary.elapsed_s:.1f} s); "
+                                  f"the registration did not finish ({status})")
+            if status == "done":
                 await self.attach_views()
                 self._show(self.session.review)
 
