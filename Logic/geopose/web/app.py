@@ -166,7 +166,7 @@ class GeoPoseViewApp:
                                   f"the registration did not finish ({status})")
             if status == "done":
                 await self.attach_views()
-                self._show(self.session.review)
+                self._show(self.session.review, keep_camera=shown is not None)
 
     async def _show_estimate(self, estimate) -> None:
         """Show the networks' estimate of the running registration (a ``FileEstimate``) in the 3D view, marked
@@ -199,11 +199,11 @@ class GeoPoseViewApp:
             self._show(review)
             state.status = "done"
 
-    def _show(self, review: Review) -> None:
+    def _show(self, review: Review, keep_camera: bool = False) -> None:
         from .scene import show_review
 
         state = self.server.state
-        show_review(self.slicer_app, review)
+        show_review(self.slicer_app, review, keep_camera)
         state.result_folder = str(review.folder)
         state.overlays = [{"name": n, "src": _png_data_url(review.folder / n)} for n in OVERLAY_NAMES]
         state.quality = quality_rows(review.record)

@@ -22,13 +22,13 @@ VIEW_COLOURS = {"pa": (0.25, 0.55, 1.0), "lat": (0.2, 0.85, 0.35)}
 VR_PRESET = "CT-Chest-Contrast-Enhanced"
 
 
-def show_review(slicer_app, review) -> dict:
+def show_review(slicer_app, review, keep_camera: bool = False) -> dict:
     """Replace the scene's contents with ``review``'s nodes; returns them by name (``cta``, ``<key>Pose``,
-    ``<key>Frustum``, ``<key>Image``, ``<key>MAP``). The camera keeps its place when the scene showed the same
-    registration's estimate (:func:`show_estimate`)."""
+    ``<key>Frustum``, ``<key>Image``, ``<key>MAP``). ``keep_camera``: the scene showed the same registration's
+    estimate (:func:`show_estimate`), so the camera stays where the user may have moved it."""
     views = {key: (view.get("role", key.upper()), np.asarray(view["pose_ras"], dtype=float))
              for key, view in review.record["views"].items()}
-    return _show(slicer_app, review.cta, views, review.maps, review.detectors)
+    return _show(slicer_app, review.cta, views, review.maps, review.detectors, keep_camera)
 
 
 def show_estimate(slicer_app, estimate, maps: dict[str, np.ndarray]) -> dict:
@@ -38,14 +38,14 @@ def show_estimate(slicer_app, estimate, maps: dict[str, np.ndarray]) -> dict:
     cta = estimate.cta
     views = {key: (f"{run.view_role} (estimate)", pose_to_patient(estimate.preliminary.poses[key], cta.ijk_to_ras, cta.shape_ijk))
              for key, run in estimate.runs.items()}
-    return _show(slicer_app, cta, views, maps, {key: run.detector for key, run in estimate.runs.items()})
+    return _show(slicer_app, cta, views, maps, {key: run.detector for key, run in estimate.runs.items()}, False)
 
 
-def _show(slicer_app, cta, views: dict[str, tuple[str, np.ndarray]], maps: dict[str, np.ndarray], detectors: dict) -> dict:
-    """The scene of the CTA and, per view key, its title and camera-to-RAS pose (mm), MAP and detector. The camera is
-    placed only when the scene had no pose before."""
+def _show(slicer_app, cta, views: dict[str, tuple[str, np.ndarray]], maps: dict[str, np.ndarray], detectors: dict,
+          keep_camera: bool) -> dict:
+    """The scene of the CTA and, per view key, its title and camera-to-RAS pose (mm), MAP and detector; the camera
+    placed to show them unless ``keep_camera``."""
     scene = slicer_app.scene
-    shown_before = bool(list(scene.GetNodesByClass("vtkMRMLLinearTransformNode")))
     for cls in ("vtkMRMLScalarVolumeNode", "vtkMRMLModelNode", "vtkMRMLLinearTransformNode"):
         for node in list(scene.GetNodesByClass(cls)):
             scene.RemoveNode(node)
@@ -60,7 +60,7 @@ def _show(slicer_app, cta, views: dict[str, tuple[str, np.ndarray]], maps: dict[
         nodes[f"{key}MAP"] = mrml.plane_volume_node(scene, maps[key], det, pose_ras, f"GeoPose {title} MAP")
         nodes[f"{key}MAP"].GetDisplayNode().SetVisibility(False)
     for view in slicer_app.view_manager.get_threed_views():
-        if not shown_before:
+        if not keep_camera:
             view.reset_camera()
             view.renderer().GetActiveCamera().Elevation(20)
             view.renderer().GetActiveCamera().Azimuth(35)
