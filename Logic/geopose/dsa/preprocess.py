@@ -53,6 +53,9 @@ MASK_CLIP_PERCENTILE = 90.0
 #: detector): vessels (a carotid is about 8 mm wide there) stay, the capillary blush (as wide as the cranium)
 #: goes. Chosen on validation seeds 6013-6027 among 2.5, 5 and 10 mm (experiments/vessel_image/vessel_image.md).
 BOLUS_DETAIL_SIGMA_MM = 10.0
+#: Each frame's noise level (the sd of its fine detail over the cranium) is measured on every this-many-th pixel
+#: along rows and columns (a 1024^2 run: 256^2 samples per frame).
+NOISE_LEVEL_STRIDE = 4
 #: Empty cells around the bilateral grid (its blur reaches two cells).
 _GRID_PAD = 2
 
@@ -265,9 +268,12 @@ def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray, pixel_mm: tuple[fl
     vessels); the weights are that curve less its median over frames, negative parts zeroed. Fine detail
     leaves out the capillary blush, a haze as wide as the cranium that follows the arteries and outlasts
     them: read from the plain frames the curve followed the blush in short runs and weighted the late
-    frames, whose vessels are gone (experiments/vessel_image/vessel_image.md). Frames without contrast get
-    no weight, so the noise they add to a plain mean drops out; a run without a bolus (flat curve, or one
-    frame) gets the plain mean. float32 ``(H, W)``."""
+    frames, whose vessels are gone (experiments/vessel_image/vessel_image.md). The curve is divided by each
+    frame's noise variance (:func:`frame_noise_levels`), the matched filter's weight where the noise changes from
+    frame to frame: subtraction residue from patient motion grows over a run, lines the skull's edges (which then
+    rank among the bright pixels) and, unweighted, made the curve rise to the run's last frames
+    (experiments/vessel_image/residue.md). Frames without contrast get no weight, so the noise they add to a plain
+    mean drops out; a run without a bolus (flat curve, or one frame) gets the plain mean. float32 ``(H, W)``."""
     frames = np.asarray(frames, dtype=np.float32)
     inside = np.asarray(mask) > 0
     mean = frames.mean(axis=0)
@@ -279,10 +285,24 @@ def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray, pixel_mm: tuple[fl
     # each frame's detail averaged over the bright pixels, as one kernel (the blur is linear and symmetric)
     kernel = (bright - wide_gaussian_blur(bright, sigma_px)) / bright.sum()
     curve = np.tensordot(frames, kernel.astype(np.float32), axes=2).astype(np.float64)
+    curve = curve / np.maximum(frame_noise_levels(frames, inside & ~(bright > 0), sigma_px), 1e-12) ** 2
     weights = np.clip(curve - np.median(curve), 0.0, None)
     if not weights.sum() > 0:
         return mean
     return np.tensordot((weights / weights.sum()).astype(np.float32), frames, axes=1)
+
+
+def frame_noise_levels(frames: np.ndarray, inside: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
+    """Per frame ``(T,)`` the sd of its fine detail (the frame less its Gaussian blur of ``sigma_px`` (rows,
+    columns), pixels) over the cranium ``inside`` (bool ``(H, W)``), sampled on every :data:`NOISE_LEVEL_STRIDE`-th
+    pixel (every pixel where that leaves fewer than 16 of the cranium): quantum noise and motion residue, the
+    vessels' small share included. Ones where the cranium has fewer than 2 pixels (no level to read)."""
+    step = NOISE_LEVEL_STRIDE if np.count_nonzero(inside[::NOISE_LEVEL_STRIDE, ::NOISE_LEVEL_STRIDE]) >= 16 else 1
+    sampled, where = frames[:, ::step, ::step], inside[::step, ::step]
+    if np.count_nonzero(where) < 2:
+        return np.ones(len(frames))
+    sigma = tuple(s / step for s in sigma_px)
+    return np.array([(f - wide_gaussian_blur(f, sigma))[where].std() for f in sampled], dtype=np.float64)
 
 
 def vessel_image(image: np.ndarray, mask: np.ndarray, source: Detector, target: Detector) -> np.ndarray:
