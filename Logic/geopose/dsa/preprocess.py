@@ -295,8 +295,9 @@ def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray, pixel_mm: tuple[fl
 def frame_noise_levels(frames: np.ndarray, inside: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
     """Per frame ``(T,)`` the sd of its fine detail (the frame less its Gaussian blur of ``sigma_px`` (rows,
     columns), pixels) over the cranium ``inside`` (bool ``(H, W)``), sampled on every :data:`NOISE_LEVEL_STRIDE`-th
-    pixel (every pixel where that leaves fewer than 16 of the cranium): quantum noise and motion residue, the
-    vessels' small share included. Ones where the cranium has fewer than 2 pixels (no level to read)."""
+    pixel (every pixel where that leaves fewer than 16 of the cranium): quantum noise and motion residue
+    (:func:`bolus_weighted_mean` leaves its brightest pixels, vessels and residue fringe, out of ``inside``). Ones
+    where ``inside`` has fewer than 2 pixels (no level to read)."""
     step = NOISE_LEVEL_STRIDE if np.count_nonzero(inside[::NOISE_LEVEL_STRIDE, ::NOISE_LEVEL_STRIDE]) >= 16 else 1
     sampled, where = frames[:, ::step, ::step], inside[::step, ::step]
     if np.count_nonzero(where) < 2:
