@@ -234,12 +234,13 @@ class RegistrationOptions(_Group):
         None, "percentiles the networks' MAP is clipped to (default: the models' manifest, else "
         f"{' '.join(f'{p:g}' for p in C.MAP_CLIP_PERCENTILES)}); the TTO target keeps "
         f"{' '.join(f'{p:g}' for p in C.MAP_CLIP_PERCENTILES)}", kind="percentiles")
-    #: At 3 (experiments/refine_starts/refine_starts.md) the result before the TTO takes 1.0-1.2 s less; validation
-    #: 6010-6029 kept its accuracy (1.06 -> 1.05 mm), the benchmark did not quite (views < 5 mm 95.2 -> 94.0 %,
-    #: rotation 2.92 -> 3.07 deg, one view > 5 mm flagged "ok"), so the default stays the renderers' own.
+    #: At 3 the result before the TTO takes 1.0-1.4 s less, but it costs accuracy: on 1 mm validation phantoms
+    #: 6010-6034 the mean carotid mPCD goes 0.790 -> 0.859 mm (experiments/speed_targets/speed_targets.md; on 2 mm
+    #: phantoms earlier, the benchmark lost a little: experiments/refine_starts/refine_starts.md), so the default
+    #: stays the renderers' own.
     estimate_voxel_per_pixel: float = setting(1.5, "greedy Refine and the similarity search render the coarsest CTA level "
                                               "whose voxels are at most this many pixel footprints (3: about 1 s faster, "
-                                              "see experiments/refine_starts)", bounds=L.VOXEL_PER_PIXEL)
+                                              "less accurate; see experiments/speed_targets)", bounds=L.VOXEL_PER_PIXEL)
     work_spacing_mm: float | None = setting(None, "the finest CTA level the renderers sample is the coarsest with voxels of at "
                                             f"most this (mm) (default: 2 mm for the CPU's {TTO_PX_CPU} px TTO images, 1 mm for "
                                             f"CUDA's {TTO_PX_CUDA})",

@@ -5,7 +5,7 @@ Each folder is a phantom case as ``geopose phantom --seed S --spacing-mm MM --ou
 the CTA and the two runs read from the files, masks computed, every option at its default); the truth only scores. One
 JSON line per case: carotid mPCD (mm at the detector) and rotation error (deg) per view of the result and of the
 networks' estimate, the start kept, whether the networks' estimate was kept, the mirror test's margin, the flags and
-the total time (s). ``--mirrored``: the CTA's array flipped along its left-right axis, the header kept (as
+the total time (s). ``--set NAME=VALUE`` registers with an option away from its default. ``--mirrored``: the CTA's array flipped along its left-right axis, the header kept (as
 ``experiments/mirror/mirror_default_path.py``): the mirror test should fail the result.
 
     for s in $(seq 6010 6034); do geopose phantom --seed $s --spacing-mm 1 --out /tmp/ph1/$s; done
@@ -28,9 +28,15 @@ from geopose.bench.cases import seed_range, training_seeds  # noqa: E402
 from geopose.cta.io import load_cta  # noqa: E402
 from geopose.dsa.readers import read_dsa  # noqa: E402
 from geopose.nets import load_models  # noqa: E402
+from geopose.options import RegistrationOptions  # noqa: E402
 from geopose.register import register_case  # noqa: E402
 from geopose.register.evaluate import load_truth  # noqa: E402
 from geopose.resources import default_models_dir  # noqa: E402
+
+
+def estimate_pose(view):
+    """The networks' estimate of a view: after the similarity search, or after greedy Refine where it did not run."""
+    return view.search_pose if view.search_pose is not None else view.refine.pose
 
 
 def main() -> None:
@@ -41,12 +47,15 @@ def main() -> None:
     ap.add_argument("--seeds", type=seed_range, required=True, help="held-out seeds, e.g. 6010-6034")
     ap.add_argument("--doc", type=Path, default=None, help="JSON lines out (default: stdout)")
     ap.add_argument("--mirrored", action="store_true", help="register each CTA mirrored left-right")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a registration option away from its default, e.g. estimate_voxel_per_pixel=3 (repeatable)")
     args = ap.parse_args()
     torch.set_num_threads(2)
     clash = training_seeds(default_models_dir() / "manifest.json") & set(args.seeds)
     if clash:
         raise SystemExit(f"seeds {sorted(clash)} were used to train the shipped models: choose held-out seeds")
     models = load_models(runtime="torch")
+    options = RegistrationOptions().replace(**{k: json.loads(v) for k, v in (a.split("=", 1) for a in args.set)})
     out = open(args.doc, "w") if args.doc else sys.stdout
     for seed in args.seeds:
         folder = args.folders / str(seed)
@@ -56,13 +65,14 @@ def main() -> None:
         runs = {"pa": read_dsa(folder / "dsa_pa.dcm"), "lat": read_dsa(folder / "dsa_lat.dcm")}
         truth = load_truth(folder / "cta.nii.gz")
         scored = SimpleNamespace(true_poses=truth.poses, runs=runs, carotid_points_mm=truth.carotid_points_mm)
-        reg = register_case(cta, runs, models=models)
+        reg = register_case(cta, runs, models=models, options=options)
         r = reg.registration
         row = {"seed": seed, "final": view_errors(scored, {k: reg.views[k].final_pose for k in runs}),
-               "estimate": view_errors(scored, {k: reg.views[k].search_pose for k in runs}),
+               "estimate": view_errors(scored, {k: estimate_pose(reg.views[k]) for k in runs}),
                "chosen": r.chosen_start, "kept_learned": bool(r.kept_learned),
                "mirror": None if r.mirror is None else round(float(r.mirror.margin), 4),
-               "flags": [reg.views[k].quality.flag for k in ("pa", "lat")], "total_s": round(reg.runtimes_s["total"], 2)}
+               "flags": [reg.views[k].quality.flag for k in ("pa", "lat")], "total_s": round(reg.runtimes_s["total"], 2),
+               "runtimes_s": {k: round(v, 2) for k, v in reg.runtimes_s.items()}}
         print(json.dumps(row), file=out, flush=True)
 
 
