@@ -33,6 +33,7 @@ __all__ = [
     "preprocess_dsa",
     "vessel_image",
     "bolus_weighted_mean",
+    "early_frames_mean",
     "TTO_TARGET_PX",
 ]
 
@@ -244,7 +245,8 @@ class PreparedDSA:
     ``model_image`` / ``model_mask`` on ``model_detector`` (256 x 256, 1.2 mm, SDD 1020):
     the Init/Refine target. ``tto_image`` / ``tto_mask`` on ``tto_detector`` (the
     acquisition SDD, downsampled): the test-time-optimisation target; ``tto_vessels`` the
-    run's opacified vessels on the same detector (:func:`vessel_image`).
+    run's opacified vessels on the same detector (:func:`vessel_image`), and ``tto_vessels_early`` the same of the
+    run's first half (:func:`early_frames_mean`; None: not made), which ``register/vessel_image.py`` may use instead.
     """
 
     map: np.ndarray
@@ -258,6 +260,7 @@ class PreparedDSA:
     tto_vessels: np.ndarray
     view_role: str
     view_label: int
+    tto_vessels_early: np.ndarray | None = None
 
 
 def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray, pixel_mm: tuple[float, float]) -> np.ndarray:
@@ -290,6 +293,14 @@ def bolus_weighted_mean(frames: np.ndarray, mask: np.ndarray, pixel_mm: tuple[fl
     if not weights.sum() > 0:
         return mean
     return np.tensordot((weights / weights.sum()).astype(np.float32), frames, axes=1)
+
+
+def early_frames_mean(frames: np.ndarray) -> np.ndarray:
+    """The mean of a run's first half of frames ``(T, H, W)`` (the middle frame included when ``T`` is odd), float32
+    ``(H, W)``: the arteries fill before the capillary blush and the veins, so this shows them where the bolus curve
+    (:func:`bolus_weighted_mean`) followed the late frames (experiments/vessel_image/candidates.md)."""
+    frames = np.asarray(frames, dtype=np.float32)
+    return frames[: max(1, (len(frames) + 1) // 2)].mean(axis=0)
 
 
 def frame_noise_levels(frames: np.ndarray, inside: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
@@ -365,5 +376,6 @@ def preprocess_dsa(
     tto = run.detector.resized(max(1, round(h * scale)), max(1, round(w * scale)))
     tto_image, tto_mask = _finish(clipped, mask, run.detector, tto, unit)
     tto_vessels = vessel_image(bolus_weighted_mean(frames, mask, run.detector.spacing_mm), mask, run.detector, tto)
+    tto_vessels_early = vessel_image(early_frames_mean(frames), mask, run.detector, tto)
     return PreparedDSA(image, mask, model_image, model_mask, model, tto_image, tto_mask, tto, tto_vessels, run.view_role,
-                       run.view_label)
+                       run.view_label, tto_vessels_early)

@@ -13,7 +13,9 @@ its own module:
    Init estimates' rotations and isocentres (``starts.refine_starts``), the most similar end kept;
 5. ``search.similarity_search``: the patient pose's shift and in-plane turns by the same score;
    its result is the networks' estimate, handed to ``preliminary`` (a front end shows it meanwhile);
-6. ``starts.candidate_starts`` and ``tournament.run_tournament``: the test-time optimisation
+6. ``vessel_image.choose_vessel_images``: the vessel image of each run the objective compares (the bolus-weighted
+   frames, or the run's first half where the CTA's vessels at the estimate clearly prefer it);
+   ``starts.candidate_starts`` and ``tournament.run_tournament``: the test-time optimisation
    (PyTorch; skipped with a note without it) from every distinct candidate start, the result of
    lowest objective kept, the DICOM angles' on a tie; ``continuation.continued``: a result that turned far from
    its start optimised once more from where it ended;
@@ -31,6 +33,7 @@ the demo, the benchmark and the Slicer module all call :func:`register_case`.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Mapping
 
 import numpy as np
@@ -55,6 +58,7 @@ from .search import similarity_search
 from .starts import REFINED_START, SEARCHED_START, candidate_starts, refine_starts
 from .tournament import run_tournament
 from .trust import NO_VESSELS_NOTE, kept_result
+from .vessel_image import choose_vessel_images
 
 __all__ = ["register_case"]
 
@@ -113,6 +117,10 @@ def register_case(
         monitor.step("tto", 0.0, "the CTA's cranium and vessel masks")
         vessel_evidence = case.vessel_evidence
         notes += [] if vessel_evidence else [NO_VESSELS_NOTE]
+        vessel_images = {}
+        if vessel_evidence:  # the vessel image each run's objective compares, picked by the CTA's vessels at the estimate
+            views, vessel_images = choose_vessel_images(renderer, case.views, learned)
+            case = replace(case, views=views)
         starts = candidate_starts(renderer, case.views, rig, init, {estimate: X_learned}, options.objective,
                                   vessel_evidence=vessel_evidence)
         if options.tto.iterations > 0 and engine.tto_renderer is None:
@@ -141,7 +149,8 @@ def register_case(
         tto_runs=dict(tournament.runs) if tournament else {}, tto_objective=dict(tournament.objectives) if tournament else {},
         vessel_selection=tournament.vessel_selection if tournament else None,
         checks={"view_disagreement_mm": init.view_disagreement_mm}, refine_start=refined.start, refine_starts=refined.mncc,
-        search=search, vessel_evidence=vessel_evidence, bound=kept.bound, mirror=mirror, kept_learned=kept.kept_learned)
+        search=search, vessel_evidence=vessel_evidence, bound=kept.bound, mirror=mirror, kept_learned=kept.kept_learned,
+        vessel_images=vessel_images)
     with clock("score", engine):
         outcomes = score_views(renderer, case, registration, inits=init.views, init_poses=view_poses(init.patient_pose, rig),
                                refined=refined.traces, learned=learned, finals=kept.poses, searched=search is not None,

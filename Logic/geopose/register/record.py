@@ -20,6 +20,9 @@ from .continuation import CONTINUE_TURN_DEG, CONTINUED_START
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 15: ``registration.vessel_images`` (per view, which of the run's vessel images the objective compared: the
+#: bolus-weighted frames or the run's first half, and each one's NCC with the CTA's vessels at the networks' estimate;
+#: ``register/vessel_image.py``).
 #: 14: ``engine.finest_level_mm`` (the finest CTA level the renderers sample, ``register/engine.finest_level_mm``
 #: unless the option ``work_spacing_mm`` set it), and that option's meaning: a bound on the level's voxels, no
 #: longer a floor on each axis.
@@ -55,7 +58,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 14
+SCHEMA_VERSION = 15
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -239,6 +242,11 @@ def build_record(
             "of the fused Init and each view's Init; the end with the highest mean mNCC (refine_start_mncc) was kept",
             "refine_start_mncc": case.registration.refine_starts,
             "similarity_search": _search_entry(case),
+            "vessel_images": {k: {"used": c.used, "ncc_at_estimate": c.ncc} for k, c in case.registration.vessel_images.items()},
+            "vessel_images_doc": "per view, the vessel image the objective compared: bolus (the frames weighted by the run's "
+            "bolus curve) or early (the mean of the run's first half, used where its NCC with the CTA's vessels rendered at "
+            "the networks' estimate beats the bolus image's by register/vessel_image.EARLY_IMAGE_LEAD); empty: not chosen "
+            "(no vessels in the CTA, or independent views)",
         },
         "calibration": {
             "calibration_pose": _m(cal.calibration_pose),

@@ -24,6 +24,7 @@ if TYPE_CHECKING:
     from .mirror import MirrorTest
     from .opacified import VesselSelection
     from .tto import TTOResult
+    from .vessel_image import VesselImageChoice
 
 __all__ = ["Calibration", "InitEstimate", "Proposal", "RefineTrace", "SearchTrace", "ViewOutcome", "Registration",
            "CaseRegistration"]
@@ -131,7 +132,8 @@ class Registration:
     None: it did not run); ``vessel_evidence``: whether the CTA's vessel mask held any vessel; ``bound``: without
     vessel evidence, the bounded move from the DICOM angles (``bound.py``); ``mirror``: the mirrored-CTA test
     (``mirror.py``; None: not run); ``kept_learned``: why the networks' estimate was kept over the TTO's result
-    ("": it was not; ``trust.py``)."""
+    ("": it was not; ``trust.py``); ``vessel_images``: per view, which of the run's vessel images the objective
+    compared (``vessel_image.py``; empty: the bolus-weighted ones, not chosen)."""
 
     mode: str
     rig: dict[str, np.ndarray] = field(default_factory=dict)
@@ -149,6 +151,7 @@ class Registration:
     bound: "BoundedMove | None" = None
     mirror: "MirrorTest | None" = None
     kept_learned: str = ""
+    vessel_images: dict[str, "VesselImageChoice"] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
