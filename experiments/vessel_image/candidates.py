@@ -24,18 +24,18 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "Logic"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from geopose.bench.cases import seed_range  # noqa: E402
 from geopose.cta import vessel_mask_from_cta  # noqa: E402
-from geopose.cta.io import load_cta  # noqa: E402
 from geopose.dsa import preprocess as P  # noqa: E402
 from geopose.dsa.readers import read_dsa  # noqa: E402
 from geopose.geometry.poses import axis_angle_to_matrix  # noqa: E402
 from geopose.metrics.similarity import ncc  # noqa: E402
 from geopose.options import TTO_PX_CPU  # noqa: E402
-from geopose.register.evaluate import load_truth  # noqa: E402
 from geopose.render.renderer import TorchRenderer  # noqa: E402
 from geopose.render.volume import RenderVolume  # noqa: E402
+from residue_quality import opacified_case  # noqa: E402
 
 
 def candidate_weights(frames: np.ndarray, mask: np.ndarray, pixel_mm) -> dict[str, np.ndarray]:
@@ -81,13 +81,8 @@ def main() -> None:
     picked, best_hits, views = [], 0, 0
     for seed in args.seeds:
         folder = args.folders / str(seed)
-        cta = load_cta(folder / "cta.nii.gz")
-        opacified = json.loads((folder / "truth.json").read_text())["opacified_labels"]
-        labels = load_cta(folder / "labels.nii.gz", check_hu=False).array
-        arteries = np.isin(labels, sorted(set(opacified["early"]) | set(opacified["late"])))
-        oracle = TorchRenderer(RenderVolume(cta, {"vessels": cta.like(arteries.astype(np.uint8))}))
+        cta, oracle, truth = opacified_case(folder)
         computed = TorchRenderer(RenderVolume(cta, {"vessels": vessel_mask_from_cta(cta)}))
-        truth = load_truth(folder / "cta.nii.gz")
         axis = rng.normal(size=3)
         turn = np.radians(args.turn_deg) * axis / np.linalg.norm(axis)
         direction = rng.normal(size=3)

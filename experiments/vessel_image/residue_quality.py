@@ -30,6 +30,16 @@ from geopose.render.renderer import TorchRenderer  # noqa: E402
 from geopose.render.volume import RenderVolume  # noqa: E402
 
 
+def opacified_case(folder: Path):
+    """A phantom case folder's CTA, a renderer whose vessel channel is the phantom's opacified arteries (the truth's
+    early and late labels), and its truth."""
+    cta = load_cta(folder / "cta.nii.gz")
+    opacified = json.loads((folder / "truth.json").read_text())["opacified_labels"]
+    labels = load_cta(folder / "labels.nii.gz", check_hu=False).array
+    arteries = np.isin(labels, sorted(set(opacified["early"]) | set(opacified["late"])))
+    return cta, TorchRenderer(RenderVolume(cta, {"vessels": cta.like(arteries.astype(np.uint8))})), load_truth(folder / "cta.nii.gz")
+
+
 def main() -> None:
     import torch
 
@@ -41,12 +51,7 @@ def main() -> None:
     values = []
     for seed in args.seeds:
         folder = args.folders / str(seed)
-        cta = load_cta(folder / "cta.nii.gz")
-        opacified = json.loads((folder / "truth.json").read_text())["opacified_labels"]
-        labels = load_cta(folder / "labels.nii.gz", check_hu=False).array
-        arteries = np.isin(labels, sorted(set(opacified["early"]) | set(opacified["late"])))
-        renderer = TorchRenderer(RenderVolume(cta, {"vessels": cta.like(arteries.astype(np.uint8))}))
-        truth = load_truth(folder / "cta.nii.gz")
+        cta, renderer, truth = opacified_case(folder)
         row = {"seed": seed}
         for key in ("pa", "lat"):
             run = read_dsa(folder / f"dsa_{key}.dcm")
