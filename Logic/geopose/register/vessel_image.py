@@ -52,10 +52,10 @@ def choose_vessel_images(renderer: Renderer, views: Mapping[str, PreparedDSA], p
         vessels = renderer.render(poses[key], view.tto_detector, ("vessels",))[0].astype(np.float64)
         if not vessels.max() > 0:
             continue
-        scores = {name: round(float(ncc(image.astype(np.float64), vessels)), 4)
+        scores = {name: float(ncc(image.astype(np.float64), vessels))
                   for name, image in (("bolus", view.tto_vessels), ("early", view.tto_vessels_early))}
         used = "early" if scores["early"] >= scores["bolus"] + EARLY_IMAGE_LEAD else "bolus"
-        choices[key] = VesselImageChoice(used, scores)
+        choices[key] = VesselImageChoice(used, {name: round(value, 4) for name, value in scores.items()})
         if used == "early":
             chosen[key] = replace(view, tto_vessels=view.tto_vessels_early)
     return chosen, choices
