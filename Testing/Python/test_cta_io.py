@@ -146,7 +146,7 @@ def test_masks_on_synthetic_skull_with_vessel(monkeypatch):
     assert iou > 0.95
     with monkeypatch.context() as m:
         m.setattr(masks, "CONTRAST_SPAN_MM", 50.0)  # the synthetic head is smaller than a real one
-        vessels = vessel_mask_from_cta(vol).array.astype(bool)
+        vessels = vessel_mask_from_cta(vol, arteries_only=False).array.astype(bool)  # the threshold rule's geometry
     assert (vessels & tube).sum() / tube.sum() > 0.8  # most of the vessel found
     assert vessels[(r > 33) & (r < 34)].sum() == 0  # skull rim excluded
     assert (vessels & ~tube).sum() < 0.05 * tube.sum()
@@ -161,7 +161,7 @@ def test_vessel_mask_of_a_fine_grid_is_found_on_the_working_grid(monkeypatch):
     a[:, :, :20] = 1000.0  # ... beside a bone slab (x < 10 mm)
     vol = Volume(a, np.diag([spacing, spacing, spacing, 1.0]))
     monkeypatch.setattr(masks, "CONTRAST_SPAN_MM", 10.0)  # the block is 12 mm tall
-    result = vessel_mask_from_cta(vol)
+    result = vessel_mask_from_cta(vol, arteries_only=False)
     assert result.metadata["method"].endswith("on a 1 mm working grid")
     vessels = result.array
     distance_mm = (np.arange(80) - 19) * spacing  # from the slab's last voxel, along x
@@ -182,7 +182,7 @@ def test_vessel_mask_leaves_out_the_marrow_dense_bone_rings():
     a[core] = 500.0
     lumen = np.hypot(j - 32, i - 46) <= 3.0
     a[lumen] = 300.0
-    result = vessel_mask_from_cta(Volume(a, np.eye(4)))
+    result = vessel_mask_from_cta(Volume(a, np.eye(4)), arteries_only=False)
     vessels = result.array > 0
     assert result.metadata["contrast"] is True
     assert not (vessels & core).any()

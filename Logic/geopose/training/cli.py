@@ -1,6 +1,7 @@
 """``geopose train``: build a canonical population, train Init/Refine, evaluate, ship models.
 
-Sub-commands: ``population`` (canonicalise phantoms or a CTA folder -> cache ``.pt``),
+Sub-commands: ``population`` (canonicalise phantoms or a CTA folder -> cache ``.pt``), ``arteries`` (the
+artery classifier of the computed CTA vessel mask -> ``.json``),
 ``init`` and ``refine`` (train from a cache), ``evaluate`` (held-out metrics JSON),
 ``ship`` (fp16 torch and ONNX model files + manifest into a models folder).
 """
@@ -19,6 +20,7 @@ from .losses import LossWeights
 from .manifest import file_entry, model_entry, verify_manifest, write_manifest
 from ..nets.manifest import read_manifest
 from .population import folder_population, load_population, phantom_population, phantom_template, save_population
+from .arteries import THRESHOLD as ARTERY_THRESHOLD
 from .trainer import TrainConfig, train
 from ..errors import InputError
 from ..phantom.real_head import DEFORM_AMPLITUDE_MM, DEFORM_SCALE_SD
@@ -126,6 +128,26 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _arteries(args: argparse.Namespace) -> int:
+    from .arteries import folder_artery_data, phantom_artery_data, save_artery_classifier, train_artery_classifier
+
+    if args.phantoms is None and args.folder is None:
+        raise InputError("give --phantoms SEEDS, --folder DIR or both: CTAs whose arteries are known")
+    data, recipe = [], {}
+    if args.phantoms is not None:
+        for spacing in args.spacing:
+            data += phantom_artery_data(args.phantoms, spacing, progress=_say)
+        recipe["phantoms"] = {"seeds": args.phantoms, "spacing_mm": args.spacing}
+    if args.folder is not None:
+        data += folder_artery_data(args.folder, progress=_say)
+        recipe["folder"] = str(args.folder)
+    classifier = train_artery_classifier(data, epochs=args.epochs, seed=args.seed, threshold=args.threshold, recipe=recipe)
+    save_artery_classifier(classifier, args.out)
+    _say(f"wrote {args.out} ({classifier.training['voxels']} voxels, final loss {classifier.training['final_loss']:.3f}); "
+         f"ship it as Resources/Models/artery_classifier.json")
+    return 0
+
+
 def _ship(args: argparse.Namespace) -> int:
     from ..nets import export_onnx, load_model, read_model_header, save_model
 
@@ -221,6 +243,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_variants)
     _training_options(sub.add_parser("init", help="train GeoPose-Init"), "init")
     _training_options(sub.add_parser("refine", help="train GeoPose-Refine from a trained Init"), "refine")
+    p = sub.add_parser("arteries", help="train the artery classifier of the computed CTA vessel mask (JSON)")
+    p.add_argument("--phantoms", type=_seeds, default=None, help="phantom seeds, e.g. 100-115")
+    p.add_argument("--spacing", type=float, nargs="+", default=[1.0], help="phantom voxel sizes (mm), each seed at each")
+    p.add_argument("--folder", type=Path, default=None, help="folder of CTAs NAME.nii.gz with artery segmentations NAME_vessels.nii.gz")
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threshold", type=float, default=ARTERY_THRESHOLD, help="probability from which a voxel is kept as artery")
+    p.add_argument("--out", required=True, type=Path, help="the classifier file (.json) to write")
+    p.set_defaults(func=_arteries)
     p = sub.add_parser("evaluate", help="held-out metrics of trained models (JSON)")
     p.add_argument("--population", required=True, type=Path, help="held-out population cache")
     p.add_argument("--init", required=True, type=Path)
