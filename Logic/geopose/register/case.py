@@ -84,9 +84,9 @@ def prepare_case(
 
     A CTA finer than ``render.volume.RENDER_GRID_MM`` is rendered, and its masks made, on its block means (given
     masks: the blocks they fill at least half), in the CTA's own centred frame. Missing masks are computed from the
-    CTA when first rendered (``geopose.cta.masks``); the
-    vessel mask is then a contrast-threshold approximation (empty for a CT without contrast) and
-    ``labels_source`` says which, once it is computed. The
+    CTA when first rendered (``geopose.cta.masks``); the vessel mask is then an approximation (a contrast threshold,
+    its arteries kept by a classifier; empty for a CT without contrast) and ``labels_source`` says which, once it is
+    computed. The
     'pa' run must look PA and the 'lat' run lateral by their primary angles.
     """
     monitor = monitor or Monitor()

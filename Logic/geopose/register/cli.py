@@ -85,7 +85,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(ALLOW_ID_MISMATCH_OPTION, action="store_true",
                    help="anonymised data: accept runs and CTA whose PatientID or StudyInstanceUID differ (recorded in result.json)")
     p.add_argument("--cranium-mask", help="CTA cranium mask on the CTA grid (default: computed from the CTA)")
-    p.add_argument("--segmentation", help="CTA vessel label map on the CTA grid (default: contrast threshold)")
+    p.add_argument("--segmentation", help="CTA artery label map on the CTA grid (default: a contrast threshold whose arteries a classifier keeps)")
     p.add_argument("--models", help="folder with the Init and Refine model files and their manifest.json (default: the shipped models)")
     p.add_argument("--allow-unverified-models", action="store_true",
                    help="use a --models folder without manifest.json (its files are not checksum-verified)")
