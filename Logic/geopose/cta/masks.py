@@ -17,8 +17,8 @@ from .arteries import keep_arteries, load_artery_classifier
 from .io import sitk_from_volume, sitk_geometry
 from ..errors import InputError
 
-__all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "vessel_candidates", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE", "DENSE_BONE_HU", "MARROW_MAX_MM2",
-           "BODY_HU", "BODY_SURFACE_MM", "CONTRAST_SPAN_MM"]
+__all__ = ["cranium_mask_from_cta", "vessel_mask_from_cta", "vessel_candidates", "CLOSING_RADIUS_MM", "VESSEL_HU_RANGE",
+           "DENSE_BONE_HU", "MARROW_MAX_MM2", "BODY_HU", "BODY_SURFACE_MM", "CONTRAST_SPAN_MM"]
 
 #: Radius (mm) of the closing that seals sutures, foramina and thin bone before filling.
 CLOSING_RADIUS_MM = 7.0
@@ -167,7 +167,8 @@ def vessel_mask_from_cta(volume: Volume, *, arteries_only: bool = True) -> Volum
     tree (:func:`_dark_tubes`). Of that tree, ``arteries_only`` keeps the voxels the artery classifier
     (``arteries.py``) calls artery where the working grid is no coarser than :data:`ARTERY_CLASSIFIER_MAX_MM`: the
     venous sinuses, jugular veins and rims leave (validation phantoms 6010-6019 at 1 mm: precision 91 %). On a
-    CTA finer than :data:`VESSEL_WORK_SPACING_MM` all of it on a working grid of that size. An approximation, never a segmentation.
+    CTA finer than :data:`VESSEL_WORK_SPACING_MM` all of it on a working grid of that size. An approximation,
+    never a segmentation.
 
     A CT without contrast has no vessel tree: when no component spans :data:`CONTRAST_SPAN_MM` along
     the superior axis the mask is empty, ``metadata["contrast"]`` is
@@ -188,8 +189,8 @@ def vessel_mask_from_cta(volume: Volume, *, arteries_only: bool = True) -> Volum
     elif arteries_only:
         classifier = load_artery_classifier()
         tree, share = keep_arteries(work, tree, np.asarray(cranium_mask_from_cta(work).array) > 0, classifier)
-        method += (f"; the voxels a classifier calls artery (artery_classifier.json sha256 {classifier.sha256[:12]}, "
-                   f"p >= {classifier.threshold:g}): {100 * share:.0f} % of them")
+        method += (f"; of it the {100 * share:.0f} % a classifier calls artery (artery_classifier.json sha256 "
+                   f"{classifier.sha256[:12]}, p >= {classifier.threshold:g})")
         metadata = {"artery_share": share, "artery_classifier_sha256": classifier.sha256}
     out = _back_to_full(work.like(tree.astype(np.uint8)), volume)
     return volume.like(out, kind="vessel_mask", contrast=True, method=method, **metadata)
