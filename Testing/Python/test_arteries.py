@@ -108,3 +108,28 @@ def test_on_a_1mm_phantom_the_classifier_keeps_the_arteries_and_drops_the_veins(
     assert after["carotid_centreline_recall"] > 0.85
     shipped = A.load_artery_classifier()
     assert shipped.sha256[:12] in result.metadata["method"] and result.metadata["artery_classifier_sha256"] == shipped.sha256
+
+
+def test_a_folder_of_ctas_with_artery_segmentations_is_training_data(tmp_path):
+    """``geopose train arteries --folder``: each NAME.nii.gz with its NAME_vessels.nii.gz gives the features of its
+    threshold tree labelled by the segmentation; a folder without pairs, or a segmentation on another grid, is refused
+    with the remedy."""
+    from geopose.cta import save_volume
+    from geopose.training.arteries import folder_artery_data
+
+    hu, tree, cranium = _head()
+    thin = tree & (np.arange(tree.shape[2]) > 30)[None, None, :]
+    save_volume(hu, tmp_path / "head.nii.gz")
+    save_volume(hu.like(thin.astype(np.uint8)), tmp_path / "head_vessels.nii.gz")
+    [(features, labels)] = folder_artery_data(tmp_path)
+    tubes = (np.asarray(hu.array) > 300) & (np.asarray(hu.array) < 500)  # both lumens (330 and 420 HU)
+    assert features.shape[1] == len(A.FEATURES) and 0 < len(labels) <= tubes.sum()
+    assert 0.1 < labels.mean() < 0.5  # the thin vessel is a minority of the tree's voxels
+    other_grid = np.zeros((40, 40, 40), np.uint8)
+    other_grid[10:20, 10:20, 10:20] = 1
+    save_volume(Volume(other_grid, np.eye(4)), tmp_path / "head_vessels.nii.gz")
+    with pytest.raises(InputError, match="resample the segmentation onto the CTA"):
+        folder_artery_data(tmp_path)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="holds no CTA files"):
+        folder_artery_data(tmp_path / "empty")

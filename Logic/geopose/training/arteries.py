@@ -52,17 +52,14 @@ def phantom_artery_data(seeds: Iterable[int], spacing_mm: float,
 
 
 def folder_artery_data(folder: Path, progress: Callable[[str], None] = lambda _: None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """:func:`labelled_features` of every ``NAME.nii.gz`` in ``folder`` with its ``NAME_vessels.nii.gz``."""
+    """:func:`labelled_features` of every CTA in ``folder`` with its artery label map, paired as ``geopose train
+    population --folder`` pairs them (``population.folder_cases``: ``NAME.nii.gz`` + ``NAME_vessels.nii.gz``)."""
     from ..cta import load_cta
+    from .population import folder_cases
 
-    pairs = [(p, p.with_name(p.name.replace(".nii.gz", "_vessels.nii.gz"))) for p in sorted(Path(folder).glob("*.nii.gz"))
-             if not p.name.endswith("_vessels.nii.gz")]
-    pairs = [(c, v) for c, v in pairs if v.is_file()]
-    if not pairs:
-        raise InputError(f"{folder} holds no NAME.nii.gz with a NAME_vessels.nii.gz beside it: give CTAs with their artery segmentations")
     data = []
-    for cta_path, vessels_path in pairs:
-        cta, vessels = load_cta(cta_path), load_cta(vessels_path)
+    for cta_path, vessels_path in folder_cases(folder):
+        cta, vessels = load_cta(cta_path), load_cta(vessels_path, check_hu=False)
         if vessels.array.shape != cta.array.shape:
             raise InputError(f"{vessels_path.name} is not on {cta_path.name}'s grid: resample the segmentation onto the CTA")
         data.append(labelled_features(cta, np.asarray(vessels.array) > 0))
