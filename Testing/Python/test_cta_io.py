@@ -189,6 +189,28 @@ def test_vessel_mask_leaves_out_the_marrow_dense_bone_rings():
     assert (vessels & lumen).sum() / lumen.sum() > 0.95
 
 
+def test_a_clear_canal_tube_is_bridged_to_the_tree_across_its_mouth_and_a_faint_piece_is_not():
+    """1 mm voxels: a tree (a vertical vessel stub) ends 3 mm (CANAL_MOUTH_MM) below a bent canal tube (2 x 2 voxels,
+    21 mm up then 15 mm across, an L like the petrous ICA; tube measure 0.2) and as far beside a faint piece of the
+    measure (a 6 x 8 x 8 mm blob at 0.04, like lumen-HU marrow), both reached across near-bone lumen: only the clear tube
+    is joined, with its mouth; without the near-bone lumen at its mouth nothing is."""
+    shape = (48, 64, 64)
+    tree, canal, lumen = (np.zeros(shape, bool) for _ in range(3))
+    tubes = np.zeros(shape, np.float32)
+    tree[2:10, 30:32, 30:32] = True
+    canal[13:34, 30:32, 30:32] = True  # up ...
+    canal[32:34, 30:32, 32:47] = True  # ... then across
+    tubes[canal] = 0.2
+    canal[2:8, 30:38, 35:43] = True  # the faint piece beside the stub
+    tubes[2:8, 30:38, 35:43] = 0.04
+    lumen[10:13, 30:32, 30:32] = True  # the canal's mouth
+    lumen[2:6, 30:32, 32:35] = True  # near-bone lumen between the stub and the faint piece
+    joined = masks._canal_mouths(tree, canal, tubes, lumen | canal, (1.0, 1.0, 1.0))
+    assert joined[13:34, 30:32, 30:32].all() and joined[32:34, 30:32, 32:47].all() and joined[10:13, 30:32, 30:32].all()
+    assert not joined[2:8, 30:38, 35:43].any() and not joined[2:6, 30:32, 32:35].any()
+    assert not masks._canal_mouths(tree, canal, tubes, canal, (1.0, 1.0, 1.0))[10:13].any()
+
+
 def test_cranium_mask_needs_bone():
     vol = Volume(np.full((8, 8, 8), 20.0, np.float32), np.eye(4))
     with pytest.raises(ValueError, match="no voxel above"):
