@@ -175,8 +175,8 @@ def vessel_mask_from_cta(volume: Volume, *, arteries_only: bool = True) -> Volum
     (:func:`_canal_mouths`). Of that tree, ``arteries_only`` keeps the voxels the artery classifier
     (``arteries.py``) calls artery where the working grid is no coarser than :data:`ARTERY_CLASSIFIER_MAX_MM`: the
     venous sinuses, jugular veins and rims leave (validation phantoms 6010-6019 at 1 mm: precision 85 %, carotid
-    centreline recall 96 %, at the classifier's p >= 0.3). On a CTA finer than :data:`VESSEL_WORK_SPACING_MM` all of it on a working grid of that size. An approximation,
-    never a segmentation.
+    centreline recall 96 %, at the classifier's p >= 0.3). On a CTA finer than :data:`VESSEL_WORK_SPACING_MM` all of
+    it on a working grid of that size. An approximation, never a segmentation.
 
     A CT without contrast has no vessel tree: when no component spans :data:`CONTRAST_SPAN_MM` along
     the superior axis the mask is empty, ``metadata["contrast"]`` is
