@@ -190,25 +190,29 @@ def test_vessel_mask_leaves_out_the_marrow_dense_bone_rings():
 
 
 def test_a_clear_canal_tube_is_bridged_to_the_tree_across_its_mouth_and_a_faint_piece_is_not():
-    """1 mm voxels: a tree (a vertical vessel stub) ends 3 mm (CANAL_MOUTH_MM) below a bent canal tube (2 x 2 voxels,
-    21 mm up then 15 mm across, an L like the petrous ICA; tube measure 0.2) and as far beside a faint piece of the
+    """1 mm voxels: a tree (a vertical vessel stub) ends 4 mm (CANAL_BRIDGE_MM) below a bent canal tube (2 x 2 voxels,
+    21 mm up then 15 mm across, an L like the petrous ICA; tube measure 0.2) and 3 mm beside a faint piece of the
     measure (a 6 x 8 x 8 mm blob at 0.04, like lumen-HU marrow), both reached across near-bone lumen: only the clear tube
-    is joined, with its mouth; without the near-bone lumen at its mouth nothing is."""
+    is joined, with its whole mouth, of which only the voxels within 3 mm (CANAL_MOUTH_MM) of both stay lumen; without
+    the near-bone lumen at its mouth nothing is joined."""
+    assert (masks.CANAL_MOUTH_MM, masks.CANAL_BRIDGE_MM) == (3.0, 4.0)  # the geometry below is drawn for these
     shape = (48, 64, 64)
     tree, canal, lumen = (np.zeros(shape, bool) for _ in range(3))
     tubes = np.zeros(shape, np.float32)
     tree[2:10, 30:32, 30:32] = True
-    canal[13:34, 30:32, 30:32] = True  # up ...
-    canal[32:34, 30:32, 32:47] = True  # ... then across
+    canal[14:35, 30:32, 30:32] = True  # up ...
+    canal[33:35, 30:32, 32:47] = True  # ... then across
     tubes[canal] = 0.2
     canal[2:8, 30:38, 35:43] = True  # the faint piece beside the stub
     tubes[2:8, 30:38, 35:43] = 0.04
-    lumen[10:13, 30:32, 30:32] = True  # the canal's mouth
+    lumen[10:14, 30:32, 30:32] = True  # the canal's mouth, 4 mm
     lumen[2:6, 30:32, 32:35] = True  # near-bone lumen between the stub and the faint piece
-    joined = masks._canal_mouths(tree, canal, tubes, lumen | canal, (1.0, 1.0, 1.0))
-    assert joined[13:34, 30:32, 30:32].all() and joined[32:34, 30:32, 32:47].all() and joined[10:13, 30:32, 30:32].all()
-    assert not joined[2:8, 30:38, 35:43].any() and not joined[2:6, 30:32, 32:35].any()
-    assert not masks._canal_mouths(tree, canal, tubes, canal, (1.0, 1.0, 1.0))[10:13].any()
+    bridged, mouths = masks._canal_mouths(tree, canal, tubes, lumen | canal, (1.0, 1.0, 1.0))
+    assert bridged[14:35, 30:32, 30:32].all() and bridged[33:35, 30:32, 32:47].all() and bridged[10:14, 30:32, 30:32].all()
+    assert not bridged[2:8, 30:38, 35:43].any() and not bridged[2:6, 30:32, 32:35].any()
+    assert mouths[11:13, 30:32, 30:32].all() and mouths.sum() == mouths[11:13].sum() == 8  # 2 and 3 mm from both ends
+    without = masks._canal_mouths(tree, canal, tubes, canal, (1.0, 1.0, 1.0))
+    assert not without[0][10:14].any() and not without[1].any()
 
 
 def test_cranium_mask_needs_bone():

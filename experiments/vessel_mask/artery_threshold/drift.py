@@ -42,7 +42,7 @@ def variant_mask(cta, threshold: float, mouths: bool) -> np.ndarray:
     bridge, load = masks._canal_mouths, masks.load_artery_classifier
     try:
         if not mouths:
-            masks._canal_mouths = lambda tree, canal, *a: np.zeros_like(canal)
+            masks._canal_mouths = lambda tree, canal, *a: (np.zeros_like(canal),) * 2
         masks.load_artery_classifier = lambda: dataclasses.replace(load(), threshold=threshold)
         return masks.vessel_mask_from_cta(cta).array > 0
     finally:
