@@ -6,13 +6,17 @@ classifier's p and the tube measure (medians).
     .venv/bin/python experiments/vessel_mask/canal_bridge/carotid_misses.py 6025 6032
 """
 import sys
-import numpy as np, SimpleITK as sitk
-import geopose
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+import geopose  # noqa: F401  (before torch)
 from geopose.cta import masks as M
 from geopose.cta.arteries import artery_features, load_artery_classifier
 from geopose.phantom import make_subject
 from geopose.phantom import labels as L
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[3] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks"))
 from bench_vessels import _distance_mm
 
 clf = load_artery_classifier()
