@@ -133,3 +133,18 @@ def test_a_folder_of_ctas_with_artery_segmentations_is_training_data(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="holds no CTA files"):
         folder_artery_data(tmp_path / "empty")
+
+
+def test_hu_is_also_read_against_the_masks_own_contrast():
+    """The same vessels at a fainter contrast (every lumen voxel's HU times 0.7) keep their HU read against the mask's
+    median HU, while the plain HU column falls by the same factor: the classifier sees the subject's contrast."""
+    hu, tree, cranium = _head()
+    faint = np.asarray(hu.array).copy()
+    faint[tree] *= 0.7
+    features, _ = A.artery_features(hu, tree, cranium)
+    features_f, _ = A.artery_features(hu.like(faint), tree, cranium)
+    plain, ratio = A.FEATURES.index("hu"), A.FEATURES.index("hu_over_mask_median")
+    np.testing.assert_allclose(features_f[:, plain], 0.7 * features[:, plain], rtol=1e-5)
+    np.testing.assert_allclose(features_f[:, ratio], features[:, ratio], rtol=1e-5)
+    # the median voxel is the larger thick vessel's (330 HU): it reads 1, the thin vessel 420 / 330
+    np.testing.assert_allclose(np.unique(features[:, ratio].round(4)), [1.0, round(420 / 330, 4)])

@@ -2,14 +2,15 @@
 
 The contrast-threshold mask (``masks.py``) holds every enhancing lumen: the arteries a DSA run shows, but also the
 venous sinuses, the jugular veins and partial-volume rims (on phantoms about 70 % of it). Each of its voxels is
-described by eleven numbers, all in mm or HU and independent of which side of the head it lies on (the mirror test
+described by fourteen numbers, all in mm or HU and independent of which side of the head it lies on (the mirror test
 compares a CTA with its mirror image): its HU, the mean HU of its 2 mm block and those means smoothed at 3 mm (a
-vessel's size and brightness), its depth inside the mask and the deepest depth in the blocks around it (thickness),
+vessel's size and brightness), the same three divided by the mask's median HU (the subject's own contrast, which varies
+between patients and scans), its depth inside the mask and the deepest depth in the blocks around it (thickness),
 its distance to dense bone, its depth inside the cranium mask and its distance outside it, and its place in the
 cranium's box (left-right as the distance from the midline). A two-layer perceptron
-(``Resources/Models/artery_classifier.json``, trained by ``geopose train arteries`` on phantoms whose arteries are
-known) gives each the probability of being artery; voxels at or above the file's threshold are kept. Pure numpy: no
-torch at run time.
+(``Resources/Models/artery_classifier.json``, trained by ``geopose train arteries --phantoms 100-131 --spacing 1 2``
+on phantoms whose arteries are known) gives each the probability of being artery; voxels at or above the file's
+threshold are kept. Pure numpy: no torch at run time.
 """
 
 from __future__ import annotations
@@ -29,10 +30,12 @@ from ..volume import Volume
 __all__ = ["FEATURES", "ArteryClassifier", "artery_features", "keep_arteries", "load_artery_classifier",
            "default_classifier_path"]
 
-#: The per-voxel features, in order (units: HU / 300, mm / 3 or mm / 10, a share of the cranium's half-extent).
+#: The per-voxel features, in order (units: HU / 300, mm / 3 or mm / 10, a share of the cranium's half-extent; the
+#: ``*_over_mask_median`` HU divided by the median HU of the mask's voxels).
 FEATURES = ("hu", "block_mean_hu", "block_hu_smoothed_3mm", "depth_in_mask", "deepest_block_depth_within_2_blocks",
             "distance_to_dense_bone", "depth_in_cranium", "distance_outside_cranium",
-            "distance_from_midline", "anterior", "superior")
+            "distance_from_midline", "anterior", "superior",
+            "hu_over_mask_median", "block_mean_hu_over_mask_median", "block_hu_smoothed_3mm_over_mask_median")
 #: Dense bone (HU) for the bone-distance feature.
 BONE_HU = 700.0
 #: The features other than the HU and the depth inside the mask are measured on blocks of about this (mm).
@@ -116,7 +119,7 @@ def _blocks(array: np.ndarray, factors: tuple[int, int, int], reduce: np.ufunc) 
 
 
 def artery_features(hu: Volume, mask: np.ndarray, cranium: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The :data:`FEATURES` ``(N, 11)`` float32 of the ``N`` voxels of ``mask`` ([k, j, i] bool on ``hu``'s grid), and
+    """The :data:`FEATURES` ``(N, 14)`` float32 of the ``N`` voxels of ``mask`` ([k, j, i] bool on ``hu``'s grid), and
     their indices ``(N, 3)`` [k, j, i]. ``cranium`` ([k, j, i] bool): the cranium mask (``cranium_mask_from_cta``).
     The depth inside the mask is measured on ``hu``'s grid, the rest on blocks of about :data:`BLOCK_MM` (their mean
     HU; a block is mask, bone or cranium where any of its voxels is): 0.6 s on the 1 mm 256^3 phantom 6010, 2 cores."""
@@ -149,9 +152,11 @@ def artery_features(hu: Volume, mask: np.ndarray, cranium: np.ndarray) -> tuple[
         else np.full(bone.shape, BONE_CAP_MM, np.float32)
     inside = np.minimum(_distance_mm(head_blocks, coarse_spacing, inside=True), CRANIUM_CAP_MM)
     outside = np.minimum(_distance_mm(head_blocks, coarse_spacing, inside=False), CRANIUM_CAP_MM)
-    columns = [a[k, j, i] / 300.0, mean_hu[kc, jc, ic] / 300.0, smoothed[kc, jc, ic] / 300.0, depth[k, j, i] / 3.0,
-               deepest[kc, jc, ic] / 3.0, bone_mm[kc, jc, ic] / 10.0, inside[kc, jc, ic] / 10.0,
-               outside[kc, jc, ic] / 10.0, place[:, 0], place[:, 1], place[:, 2]]
+    hu_columns = [a[k, j, i] / 300.0, mean_hu[kc, jc, ic] / 300.0, smoothed[kc, jc, ic] / 300.0]
+    contrast = max(float(np.median(hu_columns[0])), 0.5)  # the mask's median HU / 300, at least the tree's 150 HU floor
+    columns = [*hu_columns, depth[k, j, i] / 3.0, deepest[kc, jc, ic] / 3.0, bone_mm[kc, jc, ic] / 10.0,
+               inside[kc, jc, ic] / 10.0, outside[kc, jc, ic] / 10.0, place[:, 0], place[:, 1], place[:, 2],
+               *(c / contrast for c in hu_columns)]
     return np.stack(columns, axis=1).astype(np.float32), idx
 
 

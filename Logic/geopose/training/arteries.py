@@ -25,12 +25,14 @@ __all__ = ["labelled_features", "phantom_artery_data", "folder_artery_data", "tr
 #: Probability from which a voxel is kept as artery. Tuned on validation phantoms 6010-6019 at 1 mm, with the canal
 #: mouths bridged (experiments/vessel_mask/artery_threshold/artery_threshold.md): at 0.5 voxel precision 90.5 %, carotid
 #: centreline recall 93.5 %; at 0.4 88 % and 94.8 %; at 0.3 85 % and 95.6 % (issue 30 asks >= 80 % and >= 95 %); at
-#: 0.2 81 % and 96.0 %.
+#: 0.2 81 % and 96.0 %. Kept for the classifier that also reads the HU against the mask's median (session 56,
+#: experiments/vessel_mask/classifier_retrain/classifier_retrain.md; validation 6020-6039: at 0.3 86.5 % and 96.4 %, at
+#: 0.5 91.3 % and 95.4 %).
 THRESHOLD = 0.3
 
 
 def labelled_features(cta: Volume, arteries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Features ``(N, 11)`` of the voxels of ``cta``'s contrast-threshold tree and their labels ``(N,)`` (1: inside
+    """Features ``(N, 14)`` of the voxels of ``cta``'s contrast-threshold tree and their labels ``(N,)`` (1: inside
     ``arteries``, a [k, j, i] bool on ``cta``'s grid, read on the working grid by the nearest voxel)."""
     work, tree, _ = vessel_candidates(cta)
     features, idx = artery_features(work, tree, np.asarray(cranium_mask_from_cta(work).array) > 0)
