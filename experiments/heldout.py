@@ -18,7 +18,8 @@ import geopose  # noqa: E402,F401  (before torch: its OpenMP threads then sleep 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from geopose.bench.cases import BenchCase, ge_head_case, headsq_case, phantom_case, seed_range, training_seeds  # noqa: E402
+from geopose.bench.cases import (  # noqa: E402,F401  (flipped_left_right: for the experiments that import it from here)
+    BenchCase, flipped_left_right, ge_head_case, headsq_case, phantom_case, seed_range, training_seeds)
 from geopose.resources import default_models_dir  # noqa: E402
 
 
@@ -65,13 +66,6 @@ def view_errors(case, poses: dict) -> dict:
         p = pose_error_components(poses[k], case.true_poses[k])
         out[k] = (round(m, 3), round(float(np.hypot(p["in_plane_rotation_deg"], p["out_of_plane_rotation_deg"])), 3))
     return out
-
-
-def flipped_left_right(cta):
-    """The CTA :class:`~geopose.volume.Volume` with its array flipped along the axis nearest left-right, the header
-    kept: what a CTA whose header swaps the patient's sides gives (the mirror test's input)."""
-    axis = 2 - int(np.argmax(np.abs(cta.ijk_to_ras[0, :3]) / np.asarray(cta.spacing_mm)))
-    return cta.like(np.ascontiguousarray(np.flip(cta.array, axis)))
 
 
 def error_cell(err: tuple[float, float, float | None]) -> str:

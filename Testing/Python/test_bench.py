@@ -141,7 +141,7 @@ def test_training_seeds_are_read_from_the_manifest_and_refused(tmp_path, capsys)
 def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     out = tmp_path / "bench"
     code = main(["bench", "--subjects", "1", "--seed-start", "777001", "--spacing-mm", "4", "--iterations", "2",
-                 "--long-iterations", "3", "--device", "cpu", "--tto-px", "48", "--out", str(out)])
+                 "--long-iterations", "3", "--device", "cpu", "--tto-px", "48", "--mirrored-subjects", "1", "--out", str(out)])
     assert code == 0
     data = json.loads((out / "bench.json").read_text())
     case = data["cases"][0]
@@ -158,6 +158,12 @@ def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     assert (out / "cases" / "phantom-777001.json").is_file()  # resumable
     # the default rows ran the user's path: masks computed from the CTA, not the phantom's labels
     assert case["masks"]["vessels"].startswith("computed from the CTA") and case["masks"]["cranium"].startswith("computed")
+    # the same subject registered again with its CTA mirrored left-right, and the mirror test's section
+    (mirrored,) = data["mirrored"]
+    assert mirrored["case"] == "phantom-777001-mirrored" and set(mirrored["quality"]) == {"pa", "lat"}
+    assert (out / "cases" / "phantom-777001-mirrored.json").is_file()
+    assert "## The mirror test: the CTA as given and mirrored left-right" in (out / "bench.md").read_text()
+    assert "--mirrored-subjects 1" in (out / "bench.md").read_text()
 
 
 def test_dense_opacification_cases_get_their_own_section_and_targets():
@@ -170,3 +176,25 @@ def test_dense_opacification_cases_get_their_own_section_and_targets():
     assert "| row | phantom-5000-all | phantom-5001-all |" in text and f"| {FINAL} | 1.0 / 1.0; 2.0 / 2.0 | 4.0 / 3.0; 3.0 / 4.0 |" in text
     assert "phantom-5001-all doubtful / failed" in text
     assert f"| {FINAL}: mean mPCD <= 2 mm | 2.50 | NO |" in text and f"| {FINAL}: mean rotation error <= 2 deg | 2.50 | NO |" in text
+
+
+def test_the_mirror_test_is_reported_on_correct_and_mirrored_ctas():
+    """Outcomes counted per CTA (failed, the sides-alike note, passed, not run), and the three targets."""
+    from geopose.bench.report import mirror_outcomes, mirrored_markdown
+
+    def test(margin, alike=False):
+        return {"margin": margin, "mirrored": margin < -0.05, "sides_alike": alike}
+
+    correct = [_case(f"phantom-{s}", {}) | {"mirror": m} for s, m in
+               ((5000, test(0.2)), (5001, test(0.01, alike=True)), (5002, test(-0.1)), (5003, None))]
+    as_given = mirror_outcomes(correct)
+    assert as_given == {"failed": 1, "sides alike": 1, "passed": 1, "not run": 1}
+    mirrored = [_case("phantom-5000-mirrored", {}, quality=("failed", "failed")) | {"mirror": test(-0.2)},
+                _case("phantom-5001-mirrored", {}, quality=("ok", "doubtful")) | {"mirror": test(0.08)}]
+    text = "\n".join(mirrored_markdown(as_given, mirrored))
+    assert "| as given (correct) | 4 | 1 | 1 | 1 | 1 |" in text and "| mirrored left-right | 2 | 1 | 0 | 1 | 0 |" in text
+    assert "| a mirrored CTA comes out failed | 1 of 2 | NO |" in text
+    assert "| no mirrored CTA passes the mirror test without the sides-alike note | 1 | NO |" in text
+    assert "| no correct CTA failed by the mirror test | 1 | NO |" in text
+    assert "Flags of the mirrored CTAs' views: ok 1, doubtful 1, failed 2." in text
+    assert "phantom-5000-mirrored -0.200; phantom-5001-mirrored +0.080" in text

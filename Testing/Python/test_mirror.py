@@ -12,7 +12,8 @@ from geopose.geometry import invert
 from geopose.register import TTOSchedule, test_time_optimise as run_tto
 from geopose.register.biplane import nominal_poses
 from geopose.cta.symmetry import Midplane, midsagittal_plane
-from geopose.register.mirror import MIRROR_LOSS_MARGIN, MIRROR_TTO_ITERATIONS, MirrorTest, mirror_test, mirrored_volume
+from geopose.register.mirror import (EQUAL_EFFORT_FAIL_MARGIN, MIRROR_LOSS_MARGIN, MIRROR_TTO_ITERATIONS, MirrorTest,
+                                     mirror_test, mirrored_volume)
 from geopose.register.objective import pair_objective
 from geopose.register.opacified import selection_judge
 from geopose.register.tournament import Tournament
@@ -65,15 +66,28 @@ def test_the_mirrored_hypothesis_reflects_the_head_across_its_own_midplane():
 
 def test_a_mirror_test_fails_a_result_only_when_the_mirror_image_explains_the_runs_better():
     plane = Midplane(np.array([1.0, 0.0, 0.0]), np.zeros(3), 0.0, 0.0, 0.95)
-    assert MirrorTest(-1.00, -0.90, plane).margin == pytest.approx(0.10) and not MirrorTest(-1.00, -0.90, plane).mirrored
-    assert not MirrorTest(-1.00, -1.00 - 0.5 * MIRROR_LOSS_MARGIN, plane).mirrored
-    assert MirrorTest(-1.00, -1.00 - 2.0 * MIRROR_LOSS_MARGIN, plane).mirrored
-    assert MirrorTest(-1.00, -0.90, plane).as_dict()["plane"]["symmetry_ncc"] == 0.95  # the record holds the plane
-    # within the margin either way the runs do not tell the sides apart, and the registration says so
-    assert MirrorTest(-1.00, -0.90, plane).note is None and MirrorTest(-1.00, -1.10, plane).note is None
-    alike = MirrorTest(-1.00, -1.00 + 0.6 * MIRROR_LOSS_MARGIN, plane).note
-    assert alike is not None and "left from its right" in alike and f"{0.6 * MIRROR_LOSS_MARGIN:+.3f}" in alike
-    assert MirrorTest(-1.00, -1.00 - 0.6 * MIRROR_LOSS_MARGIN, plane).note is not None
+    m = MIRROR_LOSS_MARGIN
+    clear = MirrorTest(-1.00, -0.80, -0.90, plane)  # the CTA as given wins both comparisons by more than the bar
+    assert clear.margin == pytest.approx(0.20) and clear.equal_effort_margin == pytest.approx(0.10)
+    assert not clear.mirrored and clear.note is None and clear.reason is None
+    assert clear.as_dict()["plane"]["symmetry_ncc"] == 0.95 and clear.as_dict()["short_loss"] == -0.90  # in the record
+    # against the result: the mirror image ahead by more than the bar fails it, the equal-effort fit not run
+    assert not MirrorTest(-1.00, -1.00 - 0.5 * m, -0.99, plane).mirrored
+    beaten = MirrorTest(-1.00, -1.00 - 2.0 * m, None, plane)
+    assert beaten.mirrored and beaten.equal_effort_margin is None and "against the result's -1.000" in beaten.reason
+    # with equal effort: the result leans towards the CTA as given by what the whole registration gained over the short
+    # fit; the mirror image ahead of the CTA's own short fit by more than twice the bar fails the result
+    behind = MirrorTest(-1.00, -0.97, -0.97 + 2.5 * m, plane)
+    assert behind.mirrored and "after the same 12 steps" in behind.reason
+    assert not MirrorTest(-1.00, -0.97, -0.97 + 1.5 * m, plane).mirrored
+    assert EQUAL_EFFORT_FAIL_MARGIN == pytest.approx(2 * m)
+    # the sides-alike note: not failed, and either comparison leaves the mirror image within the bar or ahead
+    alike = MirrorTest(-1.00, -1.00 + 0.6 * m, -0.99, plane).note  # within the bar of the result
+    assert alike is not None and "left from its right" in alike and f"{0.6 * m:+.3f}" in alike
+    assert MirrorTest(-1.00, -1.00 - 0.6 * m, -0.99, plane).note is not None
+    leaning = MirrorTest(-1.00, -0.80, -0.80 - 0.5 * m, plane)  # ahead of the result, alike with equal effort
+    assert not leaning.mirrored and leaning.note is not None and f"{0.5 * m:+.3f} with equal effort" in leaning.note
+    assert beaten.note is None and behind.note is None  # a failed result gets the reason, not the note
 
 
 def test_the_mirror_test_tells_a_one_sided_injection_from_its_mirror_image(unilateral_case):
@@ -95,6 +109,7 @@ def test_the_mirror_test_tells_a_one_sided_injection_from_its_mirror_image(unila
     for factors in (None, (2, 2, 2)):  # on the TTO's own grid (2 mm), and on a 4 mm work grid (what a 1 mm CTA gets)
         correct = mirror_test(renderer, prep.views, tournaments["correct"], X, rig, factors=factors)
         assert correct.margin > MIRROR_LOSS_MARGIN and not correct.mirrored, (factors, correct.as_dict())
+        assert correct.equal_effort_margin > MIRROR_LOSS_MARGIN and correct.note is None, (factors, correct.as_dict())
         flipped = mirror_test(swapped, prep.views, tournaments["swapped"], X, rig, factors=factors)
         assert flipped.mirrored and flipped.margin < -MIRROR_LOSS_MARGIN, (factors, flipped.as_dict())
         if factors is None:  # on the TTO's grid the result's loss is the tournament's own

@@ -29,6 +29,7 @@ from ..errors import InputError
 
 __all__ = [
     "BenchCase", "phantom_case", "real_head_case", "headsq_case", "ge_head_case", "training_seeds", "seed_range",
+    "flipped_left_right",
 ]
 
 #: Matrix cap (px) of the simulated runs: enough for the 256 px model input.
@@ -87,6 +88,13 @@ def phantom_case(seed: int, folder: Path, spacing_mm: float = 1.0, injection: st
         f"phantom-{seed}" + (f"-{injection}" if injection else ""), cta, labels.like(L.cranium_mask(labels.array).astype(np.uint8)),
         labels.like(L.vessel_mask(labels.array).astype(np.uint8)), runs, truth.poses, truth.carotid_points_mm,
     )
+
+
+def flipped_left_right(cta: Volume) -> Volume:
+    """``cta`` with its array flipped along the axis nearest the patient's left-right, the header kept: what a CTA
+    whose header swaps the patient's sides gives (the input the mirror test, ``register/mirror.py``, must fail)."""
+    axis = 2 - int(np.argmax(np.abs(cta.ijk_to_ras[0, :3]) / np.asarray(cta.spacing_mm)))
+    return cta.like(np.ascontiguousarray(np.flip(cta.array, axis)))
 
 
 @dataclass

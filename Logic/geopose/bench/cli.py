@@ -8,6 +8,7 @@ case's results are kept in ``OUT/cases/`` so an interrupted run resumes.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -22,7 +23,8 @@ from ..register.engine import resolve_engine
 from ..resources import default_models_dir
 from .cases import ARTERIES_SUFFIX, ge_head_case, headsq_case, phantom_case, training_seeds
 from .report import convergence_figure, markdown, summarise
-from .run import DRIFT_ROW, INSTANT_ROW, LEARNED_ROW, NATIVE_TTO_ROW, BenchSettings, evaluate_case, row_names
+from .run import (DRIFT_ROW, INSTANT_ROW, LEARNED_ROW, MIRRORED_SUFFIX, NATIVE_TTO_ROW, BenchSettings, evaluate_case,
+                  evaluate_mirrored, row_names)
 
 #: First held-out phantom seed (training populations use small seeds; checked at run time).
 DEFAULT_SEED_START = 5000
@@ -48,6 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also run the first --dense-subjects held-out phantoms with each of these injections (densely "
                         "opacified runs, e.g. all territories), reported in their own section")
     p.add_argument("--dense-subjects", type=int, default=5, help="held-out phantoms per --dense injection")
+    p.add_argument("--mirrored-subjects", type=int, default=0,
+                   help="held-out phantoms also registered with their CTA mirrored left-right (the mirror test must fail them)")
     p.add_argument("--models", help="model folder with its manifest.json (default: the shipped models)")
     p.add_argument("--allow-unverified-models", action="store_true",
                    help="use a --models folder without manifest.json (its files are not checksum-verified)")
@@ -66,6 +70,8 @@ def _load_or_run(path: Path, compute) -> dict:
 def run(args: argparse.Namespace) -> int:
     if args.subjects < 1:
         raise InputError(f"--subjects must be at least 1, got {args.subjects}")
+    if not 0 <= args.mirrored_subjects <= args.subjects:
+        raise InputError(f"--mirrored-subjects must lie between 0 and --subjects ({args.subjects}), got {args.mirrored_subjects}")
     out = Path(args.out)
     (out / "cases").mkdir(parents=True, exist_ok=True)
     models_dir = Path(args.models) if args.models else default_models_dir()
@@ -81,16 +87,18 @@ def run(args: argparse.Namespace) -> int:
     n = options.tto.iterations
     n_long = args.subjects if args.long_subjects is None else args.long_subjects
     cases: list[dict] = []
+    mirrored: list[dict] = []
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for i, seed in enumerate(seeds):
             long = i < n_long
             tag = f"phantom-{seed}{'' if long else SHORT_CASE_SUFFIX}"
-            result = _load_or_run(
-                out / "cases" / f"{tag}.json",
-                lambda: evaluate_case(phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm), models, settings, long=long),
-            )
+            case = functools.cache(lambda: phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm))
+            result = _load_or_run(out / "cases" / f"{tag}.json", lambda: evaluate_case(case(), models, settings, long=long))
             cases.append(result)
+            if i < args.mirrored_subjects:
+                mirrored.append(_load_or_run(out / "cases" / f"phantom-{seed}{MIRRORED_SUFFIX}.json",
+                                             lambda: evaluate_mirrored(case(), models, settings)))
             elapsed = time.perf_counter() - t_start
             row = LEARNED_ROW.format(n=n) if n > 0 else INSTANT_ROW
             mpcd = [result["rows"][row][v].get("mpcd_mm") for v in ("pa", "lat")]
@@ -127,11 +135,12 @@ def run(args: argparse.Namespace) -> int:
         f"--out {out}{' --headsq ' + args.headsq if args.headsq else ''}{' --ge-head ' + args.ge_head if args.ge_head else ''}"
         f"{' --real-seeds ' + str(args.real_seeds) if real else ''}"
         f"{' --real-arteries' if args.real_arteries else ''}"
-        f"{' --dense ' + ' '.join(args.dense) + f' --dense-subjects {args.dense_subjects}' if args.dense else ''}`"
+        f"{' --dense ' + ' '.join(args.dense) + f' --dense-subjects {args.dense_subjects}' if args.dense else ''}"
+        f"{f' --mirrored-subjects {args.mirrored_subjects}' if mirrored else ''}`"
     )
-    (out / "bench.md").write_text(markdown(summary, header, real, n, dense))
+    (out / "bench.md").write_text(markdown(summary, header, real, n, dense, mirrored))
     (out / "bench.json").write_text(json.dumps(_rounded({"summary": summary, "cases": cases, "real_heads": real,
-                                                         "dense": dense}), separators=(",", ":")))
+                                                         "dense": dense, "mirrored": mirrored}), separators=(",", ":")))
     curve_rows = [r for r in row_names(settings) if r in (LEARNED_ROW.format(n=n), NATIVE_TTO_ROW.format(n=n), DRIFT_ROW.format(n=n))
                   or r.startswith("DICOM angles + ") and r != NATIVE_TTO_ROW.format(n=n)]
     convergence_figure(cases, curve_rows, out / "tto_convergence.png")

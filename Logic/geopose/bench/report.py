@@ -104,7 +104,7 @@ def summarise(cases: list[dict], iterations: int = TTOSchedule.iterations) -> di
                "starts": {s_: starts.count(s_) for s_ in dict.fromkeys(starts) if s_},
                "refine_starts": {s_: refine_starts.count(s_) for s_ in dict.fromkeys(refine_starts) if s_},
                "quality": {f: flags.count(f) for f in FLAGS},
-               "flag_confusion": flag_confusion(cases, iterations)}
+               "flag_confusion": flag_confusion(cases, iterations), "mirror_outcomes": mirror_outcomes(cases)}
     summary["targets"] = _targets(summary, iterations)
     return summary
 
@@ -180,10 +180,10 @@ def _cell(s: dict, digits: int) -> str:
 
 
 def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int = TTOSchedule.iterations,
-             dense: list[dict] | None = None) -> str:
+             dense: list[dict] | None = None, mirrored: list[dict] | None = None) -> str:
     """The benchmark as Markdown: accuracy table, pose-error parts, view accuracy, targets,
-    runtimes, the real-anatomy rows (``real``: cases of real head CTs with simulated runs) and the
-    densely opacified phantoms (``dense``)."""
+    runtimes, the real-anatomy rows (``real``: cases of real head CTs with simulated runs), the
+    densely opacified phantoms (``dense``) and the mirror test on the subjects and their CTAs mirrored (``mirrored``)."""
     cols = [f"{label} {v.upper()}" for label, _, _ in COLUMNS for v in (*VIEWS, "avg")]
     lines = [header, "", "## Accuracy (mean (sd) over subjects; avg = PA and LAT averaged within each subject)", ""]
     lines += ["| row | n | " + " | ".join(cols) + " | rot. err. (deg) | transl. err. (mm) | success |"]
@@ -231,6 +231,8 @@ def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int 
         lines += real_heads_markdown(real, n)
     if dense:
         lines += dense_markdown(dense, n)
+    if mirrored:
+        lines += mirrored_markdown(summary.get("mirror_outcomes", {}), mirrored)
     return "\n".join(lines) + "\n"
 
 
@@ -240,6 +242,49 @@ def confusion_markdown(confusion: dict[str, dict[str, int]]) -> list[str]:
     lines = ["Quality flag against the final carotid mPCD (views):", "",
              "| flag | " + " | ".join(labels) + " |", "|---|" + "---:|" * len(labels)]
     lines += [f"| {flag} | " + " | ".join(str(confusion[flag][label]) for label in labels) + " |" for flag in FLAGS]
+    return lines + [""]
+
+
+#: What the mirror test (``register/mirror.py``) said of a case: the result failed (the CTA mirrored left-right explains
+#: the runs better), the sides-alike note (the runs do not tell the sides apart), passed, or not run.
+MIRROR_OUTCOMES = ("failed", "sides alike", "passed", "not run")
+
+
+def mirror_outcome(case: dict) -> str:
+    """One case's :data:`MIRROR_OUTCOMES` entry, from its ``mirror`` record (``MirrorTest.as_dict``)."""
+    test = case.get("mirror")
+    if test is None:
+        return "not run"
+    return "failed" if test["mirrored"] else "sides alike" if test["sides_alike"] else "passed"
+
+
+def mirror_outcomes(cases: list[dict]) -> dict[str, int]:
+    """Cases per :data:`MIRROR_OUTCOMES` entry."""
+    outcomes = [mirror_outcome(c) for c in cases]
+    return {o: outcomes.count(o) for o in MIRROR_OUTCOMES}
+
+
+def mirrored_markdown(as_given: dict[str, int], mirrored: list[dict]) -> list[str]:
+    """The mirror test on the subjects' CTAs as given (``as_given``: :func:`mirror_outcomes` of the benchmark's cases)
+    and mirrored left-right (``mirrored``: ``run.evaluate_mirrored`` cases): outcomes, flags, targets, margins."""
+    counts = mirror_outcomes(mirrored)
+    flags = [f for c in mirrored for f in c["quality"].values()]
+    lines = ["", "## The mirror test: the CTA as given and mirrored left-right", "",
+             f"The first {len(mirrored)} subjects were registered again with the CTA's array flipped left-right and the "
+             "header kept (a CTA whose header swaps the sides), on the user's path. Outcome of the mirror test (cases):",
+             "", "| CTA | cases | " + " | ".join(MIRROR_OUTCOMES) + " |", "|---|---:|" + "---:|" * len(MIRROR_OUTCOMES)]
+    lines += [f"| {name} | {sum(n.values())} | " + " | ".join(str(n[o]) for o in MIRROR_OUTCOMES) + " |"
+              for name, n in (("as given (correct)", as_given), ("mirrored left-right", counts))]
+    lines += ["", "Flags of the mirrored CTAs' views: " + ", ".join(f"{f} {flags.count(f)}" for f in FLAGS) + ".", "",
+              "| target | measured | met |", "|---|---:|:---:|",
+              f"| a mirrored CTA comes out failed | {counts['failed']} of {len(mirrored)} | "
+              f"{'yes' if counts['failed'] == len(mirrored) else 'NO'} |",
+              f"| no mirrored CTA passes the mirror test without the sides-alike note | {counts['passed']} | "
+              f"{'yes' if counts['passed'] == 0 else 'NO'} |",
+              f"| no correct CTA failed by the mirror test | {as_given['failed']} | {'yes' if as_given['failed'] == 0 else 'NO'} |",
+              "", "Margins of the mirrored CTAs (the mirrored hypothesis's objective less the result's, both views "
+              "summed; negative: the CTA's mirror image explains the runs better): " + "; ".join(
+                  f"{c['case']} {c['mirror']['margin']:+.3f}" for c in mirrored if c.get("mirror")) + "."]
     return lines + [""]
 
 

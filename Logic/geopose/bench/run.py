@@ -41,9 +41,9 @@ from ..register.pipeline import register_case
 from ..register.results import CaseRegistration
 from ..register.tto import TTOSchedule, test_time_optimise, tto_views
 from ..render.renderer import Renderer
-from .cases import BenchCase
+from .cases import BenchCase, flipped_left_right
 
-__all__ = ["BenchSettings", "row_names", "evaluate_case", "LEARNED_ROW", "NATIVE_TTO_ROW", "DRIFT_ROW", "INSTANT_ROW",
+__all__ = ["BenchSettings", "row_names", "evaluate_case", "evaluate_mirrored", "MIRRORED_SUFFIX", "LEARNED_ROW", "NATIVE_TTO_ROW", "DRIFT_ROW", "INSTANT_ROW",
            "SEARCH_ROW", "UPPER_BOUND_ROW", "UPPER_BOUND_SEARCH_ROW"]
 
 #: The default registration's rows (the targets refer to them).
@@ -56,6 +56,8 @@ DRIFT_ROW = "truth + {n} TTO (drift)"
 #: The default registration given the case's true masks (not the user's path: an upper bound).
 UPPER_BOUND_ROW = "upper bound (truth masks): greedy Refine + {n} TTO"
 UPPER_BOUND_SEARCH_ROW = "upper bound (truth masks): greedy Refine + search"
+#: Case-name suffix of a case registered with its CTA mirrored left-right (:func:`evaluate_mirrored`).
+MIRRORED_SUFFIX = "-mirrored"
 
 
 @dataclass(frozen=True)
@@ -169,4 +171,18 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
             "checks": registration.checks,
             "masks": joint.labels_source,
             "quality": {k: joint.views[k].quality.flag for k in VIEW_KEYS},
-            "quality_reasons": {k: list(joint.views[k].quality.reasons) for k in VIEW_KEYS}}
+            "quality_reasons": {k: list(joint.views[k].quality.reasons) for k in VIEW_KEYS},
+            "mirror": None if registration.mirror is None else registration.mirror.as_dict()}
+
+
+def evaluate_mirrored(case: BenchCase, models: ModelSet, settings: BenchSettings) -> dict:
+    """The default registration of ``case`` with its CTA's array flipped left-right, the header kept (a CTA whose
+    header swaps the patient's sides): the user's path (the CTA and the two runs, masks computed). It must come out
+    failed; the mirror test's numbers (``register/mirror.py``), the flags and the reasons, per view."""
+    reg = register_case(flipped_left_right(case.cta), case.runs, models=models,
+                        options=settings.options.replace(independent_views=False))
+    mirror = reg.registration.mirror
+    return {"case": case.name + MIRRORED_SUFFIX, "notes": reg.notes, "runtimes_s": {"total": reg.runtimes_s["total"]},
+            "device": reg.engine["device"], "mirror": None if mirror is None else mirror.as_dict(),
+            "quality": {k: reg.views[k].quality.flag for k in VIEW_KEYS},
+            "quality_reasons": {k: list(reg.views[k].quality.reasons) for k in VIEW_KEYS}}

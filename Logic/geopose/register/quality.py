@@ -12,7 +12,8 @@ Rule (thresholds named below; set on validation phantom runs, provisional for re
   acquisition angle's, two views placing the patient more than ``VIEW_DISAGREEMENT_MM``
   apart along the axis both see);
 * ``failed`` also when the CTA mirrored left-right explains the runs better than the result by more than
-  ``mirror.MIRROR_LOSS_MARGIN`` (``mirror.py``), or when the vessel NCC at the final pose is below ``VESSEL_NCC_FAILED`` (the CTA's vessels are
+  ``mirror.MIRROR_LOSS_MARGIN`` or the CTA as given with equal effort by more than ``mirror.EQUAL_EFFORT_FAIL_MARGIN``
+  (``mirror.py``), or when the vessel NCC at the final pose is below ``VESSEL_NCC_FAILED`` (the CTA's vessels are
   not where the runs show them: a wrong pose, or runs of another patient);
   ``doubtful`` when it is below ``VESSEL_NCC_OK``;
 * ``ok`` otherwise.
@@ -63,9 +64,7 @@ def assess(
     ``mirror``: the case's mirrored-CTA test; ``doubts``: failed consistency checks, worded)."""
     failed, doubtful = [], list(doubts)
     if mirror is not None and mirror.mirrored:
-        failed.append(f"the CTA mirrored left-right explains the runs better (objective {mirror.mirrored_loss:.3f} "
-                      f"against {mirror.loss:.3f}, both views summed): its left and right may be swapped (check the CTA's "
-                      "header, and that the CTA and the runs are of one patient), or the registration missed its best fit")
+        failed.append(mirror.reason)
     vessel_ncc = None if evidence is None else evidence.vessel_ncc
     if vessel_ncc is not None and vessel_ncc < VESSEL_NCC_FAILED:
         failed.append(f"vessel NCC {vessel_ncc:.2f} < {VESSEL_NCC_FAILED}: the CTA's vessels are not where the run shows "

@@ -20,6 +20,9 @@ from .continuation import CONTINUE_TURN_DEG, CONTINUED_START
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 16: ``registration.mirror`` adds ``short_loss`` and ``equal_effort_margin`` (the CTA as given through the mirrored
+#: hypothesis's short fit from the same start; null where the result's margin already failed it),
+#: ``equal_effort_fail_margin`` and ``sides_alike`` (the note was given).
 #: 15: ``registration.vessel_images`` (per view, which of the run's vessel images the objective compared: the
 #: bolus-weighted frames or the run's first half, and each one's NCC with the CTA's vessels at the networks' estimate;
 #: ``register/vessel_image.py``).
@@ -58,7 +61,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 15
+SCHEMA_VERSION = 16
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
