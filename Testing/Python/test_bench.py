@@ -182,19 +182,19 @@ def test_the_mirror_test_is_reported_on_correct_and_mirrored_ctas():
     """Outcomes counted per CTA (failed, the sides-alike note, passed, not run), and the three targets."""
     from geopose.bench.report import mirror_outcomes, mirrored_markdown
 
-    def test(margin, alike=False):
-        return {"margin": margin, "mirrored": margin < -0.05, "sides_alike": alike}
+    def test(margin, alike=False, equal=None):
+        return {"margin": margin, "equal_effort_margin": equal, "mirrored": margin < -0.05, "sides_alike": alike}
 
     correct = [_case(f"phantom-{s}", {}) | {"mirror": m} for s, m in
                ((5000, test(0.2)), (5001, test(0.01, alike=True)), (5002, test(-0.1)), (5003, None))]
-    as_given = mirror_outcomes(correct)
-    assert as_given == {"failed": 1, "sides alike": 1, "passed": 1, "not run": 1}
+    assert mirror_outcomes(correct) == {"failed": 1, "sides alike": 1, "passed": 1, "not run": 1}
     mirrored = [_case("phantom-5000-mirrored", {}, quality=("failed", "failed")) | {"mirror": test(-0.2)},
-                _case("phantom-5001-mirrored", {}, quality=("ok", "doubtful")) | {"mirror": test(0.08)}]
-    text = "\n".join(mirrored_markdown(as_given, mirrored))
+                _case("phantom-5001-mirrored", {}, quality=("ok", "doubtful")) | {"mirror": test(0.08, equal=0.03)}]
+    text = "\n".join(mirrored_markdown(correct, mirrored))
     assert "| as given (correct) | 4 | 1 | 1 | 1 | 1 |" in text and "| mirrored left-right | 2 | 1 | 0 | 1 | 0 |" in text
     assert "| a mirrored CTA comes out failed | 1 of 2 | NO |" in text
     assert "| no mirrored CTA passes the mirror test without the sides-alike note | 1 | NO |" in text
     assert "| no correct CTA failed by the mirror test | 1 | NO |" in text
     assert "Flags of the mirrored CTAs' views: ok 1, doubtful 1, failed 2." in text
-    assert "phantom-5000-mirrored -0.200; phantom-5001-mirrored +0.080" in text
+    assert "Correct CTAs not passed: phantom-5001 +0.010 / - (sides alike); phantom-5002 -0.100 / - (failed); phantom-5003 (not run)." in text
+    assert "Mirrored CTAs: phantom-5000-mirrored -0.200 / - (failed); phantom-5001-mirrored +0.080 / +0.030 (passed)." in text

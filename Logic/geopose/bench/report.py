@@ -104,7 +104,8 @@ def summarise(cases: list[dict], iterations: int = TTOSchedule.iterations) -> di
                "starts": {s_: starts.count(s_) for s_ in dict.fromkeys(starts) if s_},
                "refine_starts": {s_: refine_starts.count(s_) for s_ in dict.fromkeys(refine_starts) if s_},
                "quality": {f: flags.count(f) for f in FLAGS},
-               "flag_confusion": flag_confusion(cases, iterations), "mirror_outcomes": mirror_outcomes(cases)}
+               "flag_confusion": flag_confusion(cases, iterations),
+               "mirror_tests": [{"case": c["case"], "mirror": c.get("mirror")} for c in cases]}
     summary["targets"] = _targets(summary, iterations)
     return summary
 
@@ -232,7 +233,7 @@ def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int 
     if dense:
         lines += dense_markdown(dense, n)
     if mirrored:
-        lines += mirrored_markdown(summary.get("mirror_outcomes", {}), mirrored)
+        lines += mirrored_markdown(summary["mirror_tests"], mirrored)
     return "\n".join(lines) + "\n"
 
 
@@ -264,10 +265,11 @@ def mirror_outcomes(cases: list[dict]) -> dict[str, int]:
     return {o: outcomes.count(o) for o in MIRROR_OUTCOMES}
 
 
-def mirrored_markdown(as_given: dict[str, int], mirrored: list[dict]) -> list[str]:
-    """The mirror test on the subjects' CTAs as given (``as_given``: :func:`mirror_outcomes` of the benchmark's cases)
-    and mirrored left-right (``mirrored``: ``run.evaluate_mirrored`` cases): outcomes, flags, targets, margins."""
-    counts = mirror_outcomes(mirrored)
+def mirrored_markdown(as_given_cases: list[dict], mirrored: list[dict]) -> list[str]:
+    """The mirror test on the subjects' CTAs as given (``as_given_cases``: the benchmark's cases, or their
+    ``summary["mirror_tests"]``) and mirrored
+    left-right (``mirrored``: ``run.evaluate_mirrored`` cases): outcomes, flags, targets, margins."""
+    as_given, counts = mirror_outcomes(as_given_cases), mirror_outcomes(mirrored)
     flags = [f for c in mirrored for f in c["quality"].values()]
     lines = ["", "## The mirror test: the CTA as given and mirrored left-right", "",
              f"The first {len(mirrored)} subjects were registered again with the CTA's array flipped left-right and the "
@@ -282,10 +284,21 @@ def mirrored_markdown(as_given: dict[str, int], mirrored: list[dict]) -> list[st
               f"| no mirrored CTA passes the mirror test without the sides-alike note | {counts['passed']} | "
               f"{'yes' if counts['passed'] == 0 else 'NO'} |",
               f"| no correct CTA failed by the mirror test | {as_given['failed']} | {'yes' if as_given['failed'] == 0 else 'NO'} |",
-              "", "Margins of the mirrored CTAs (the mirrored hypothesis's objective less the result's, both views "
-              "summed; negative: the CTA's mirror image explains the runs better): " + "; ".join(
-                  f"{c['case']} {c['mirror']['margin']:+.3f}" for c in mirrored if c.get("mirror")) + "."]
+              "", "Margins, against the result / with equal effort (the mirrored hypothesis's objective less the "
+              "result's / less the CTA's own short fit's, both views summed; negative: the CTA's mirror image explains "
+              "the runs better; \"-\": not run, the first already failed the result). Correct CTAs not passed: "
+              + ("; ".join(_margins(c) for c in as_given_cases if mirror_outcome(c) != "passed") or "none")
+              + ". Mirrored CTAs: " + "; ".join(_margins(c) for c in mirrored if c.get("mirror")) + "."]
     return lines + [""]
+
+
+def _margins(case: dict) -> str:
+    """``name margin / equal-effort margin (outcome)`` of one case's mirror test."""
+    test = case["mirror"]
+    if test is None:
+        return f"{case['case']} (not run)"
+    equal = "-" if test.get("equal_effort_margin") is None else f"{test['equal_effort_margin']:+.3f}"
+    return f"{case['case']} {test['margin']:+.3f} / {equal} ({mirror_outcome(case)})"
 
 
 #: Real heads with arteries: the final rotation error (deg) at most this in every view.

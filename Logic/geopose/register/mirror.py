@@ -57,7 +57,7 @@ MIRROR_LOSS_MARGIN: Final = 0.05
 #: With equal effort (the CTA as given through the same short TTO from the same start) the mirrored hypothesis must
 #: explain the runs better by more than this to fail the result. Set on validation 6010-6049 at 1 mm, default path
 #: (``experiments/mirror/equal_effort.md``): the result's margin leans towards the CTA as given by what the whole
-#: registration gains over the short TTO (0.003-0.34); with equal effort the 40 correct CTAs scored -0.022..+0.37 and
+#: registration gains over the short TTO (median 0.02, up to 0.34); with equal effort the 40 correct CTAs scored -0.022..+0.37 and
 #: mirrored 6042, which passed at +0.031 against its result, -0.130. Twice the result's bar, for the short TTO's noise.
 EQUAL_EFFORT_FAIL_MARGIN: Final = 2 * MIRROR_LOSS_MARGIN
 #: Said (record, console, Slicer) when the result is not failed but the mirror image, against the result or with equal
