@@ -53,6 +53,20 @@ def heldout_phantoms(description: str, default_seeds: str) -> Iterator[tuple[arg
             yield args, phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm), out
 
 
+def written_correct_and_mirrored(folders: Path, first: int, last: int) -> Iterator[tuple[int, str, object, dict]]:
+    """Per phantom folder ``folders/SEED`` (``first``..``last``, as ``geopose phantom`` writes them) its CTA as written
+    and mirrored left-right (:func:`flipped_left_right`) with its two runs: ``(seed, "correct" | "mirrored", cta,
+    runs)``."""
+    from geopose.cta.io import load_cta
+    from geopose.dsa.readers import read_dsa
+
+    for seed in range(first, last + 1):
+        cta = load_cta(folders / str(seed) / "cta.nii.gz")
+        runs = {k: read_dsa(folders / str(seed) / f"dsa_{k}.dcm") for k in ("pa", "lat")}
+        for name, c in (("correct", cta), ("mirrored", flipped_left_right(cta))):
+            yield seed, name, c, runs
+
+
 def view_errors(case, poses: dict) -> dict:
     """Per view ``(carotid mPCD at the detector, mm; rotation error, deg)`` of ``poses`` ``{view: (4, 4)}`` against the
     phantom's truth; ``case`` holds ``true_poses``, ``runs`` and ``carotid_points_mm`` (a :class:`BenchCase`)."""

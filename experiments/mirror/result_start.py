@@ -14,12 +14,10 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from heldout import flipped_left_right  # noqa: E402  (also puts the library on the path, geopose before torch)
+from heldout import written_correct_and_mirrored  # noqa: E402  (also puts the library on the path, geopose before torch)
 
 import torch  # noqa: E402
 
-from geopose.cta.io import load_cta  # noqa: E402
-from geopose.dsa.readers import read_dsa  # noqa: E402
 from geopose.nets import load_models  # noqa: E402
 from geopose.register import pipeline  # noqa: E402
 from geopose.register.biplane import patient_pose  # noqa: E402
@@ -40,14 +38,10 @@ def main() -> None:
     pipeline.mirror_test = both_starts
     torch.set_num_threads(2)
     models = load_models(runtime="torch")
-    folders, first, last = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
-    for seed in range(first, last + 1):
-        cta = load_cta(folders / str(seed) / "cta.nii.gz")
-        runs = {k: read_dsa(folders / str(seed) / f"dsa_{k}.dcm") for k in ("pa", "lat")}
-        for name, c in (("correct", cta), ("mirrored", flipped_left_right(cta))):
-            MARGINS.clear()
-            pipeline.register_case(c, runs, models=models)
-            print(json.dumps({"seed": seed, "cta": name, **{k: round(v, 4) for k, v in MARGINS.items()}}), flush=True)
+    for seed, name, cta, runs in written_correct_and_mirrored(Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])):
+        MARGINS.clear()
+        pipeline.register_case(cta, runs, models=models)
+        print(json.dumps({"seed": seed, "cta": name, **{k: round(v, 4) for k, v in MARGINS.items()}}), flush=True)
 
 
 if __name__ == "__main__":
