@@ -16,6 +16,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 import SimpleITK as sitk
@@ -85,6 +86,17 @@ def score(mask: np.ndarray, labels: Volume, centerlines: list[dict]) -> dict:
     out["centreline_recall"] = float(np.mean(sum(hits.values(), []))) if any(hits.values()) else None
     return out
 
+
+
+def write_scored(out: TextIO, row: dict, mask: np.ndarray, subject) -> dict:
+    """``row`` (what the mask is: seed, variant, ...) with :func:`score` of ``mask`` on ``subject`` (a phantom
+    ``Subject``: labels and centrelines), written to ``out`` as one JSON line and said on stdout; returns it."""
+    row = {**row, **score(mask, subject.labels, subject.centerlines)}
+    out.write(json.dumps(row) + "\n")
+    out.flush()
+    print(*(v for k, v in row.items() if not isinstance(v, dict) and k in ("seed", "variant", "cut")),
+          f"P {row['precision']:.3f} R {row['recall']:.3f} carotid clR {row['carotid_centreline_recall']:.3f}", flush=True)
+    return row
 
 def timed_mask(cta: Volume) -> tuple[np.ndarray, dict, float]:
     """The vessel mask of ``cta`` (bool), its metadata (``contrast``: a tree was found) and its wall time (s)."""

@@ -8,7 +8,6 @@ truth with ``benchmarks/bench_vessels.py``'s ``score``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -16,7 +15,7 @@ import numpy as np
 import SimpleITK as sitk
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks"))
-from bench_vessels import score  # noqa: E402
+from bench_vessels import write_scored  # noqa: E402
 
 from geopose.bench.cases import seed_range  # noqa: E402
 from geopose.cta.arteries import artery_features, load_artery_classifier  # noqa: E402
@@ -56,10 +55,7 @@ def main() -> int:
             for name, (high, low) in VARIANTS.items():
                 kept = cut(tree.shape, idx, p, high, low)
                 mask = _back_to_full(work.like(kept.astype(np.uint8)), subject.cta) > 0
-                row = {"seed": seed, "variant": name, **score(mask, subject.labels, subject.centerlines)}
-                f.write(json.dumps(row) + "\n")
-                print(seed, f"{name:<14} P {row['precision']:.3f} R {row['recall']:.3f} "
-                      f"carotid clR {row['carotid_centreline_recall']:.3f}", flush=True)
+                write_scored(f, {"seed": seed, "variant": name}, mask, subject)
     return 0
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks"))
-from bench_vessels import score  # noqa: E402
+from bench_vessels import write_scored  # noqa: E402
 
 from geopose.bench.cases import seed_range  # noqa: E402
 from geopose.cta import masks as M  # noqa: E402
@@ -35,12 +35,8 @@ def main() -> None:
                     setattr(M, name, value)
                 t0 = time.perf_counter()
                 mask = np.asarray(vessel_mask_from_cta(subject.cta).array) > 0
-                row = {"seed": seed, "variant": variant, "seconds": round(time.perf_counter() - t0, 2),
-                       **score(mask, subject.labels, subject.centerlines)}
-                out.write(json.dumps(row) + "\n")
-                out.flush()
-                print(seed, variant, f"precision {row['precision']:.3f} carotid centreline recall "
-                      f"{row['carotid_centreline_recall']:.3f}", flush=True)
+                write_scored(out, {"seed": seed, "variant": variant, "seconds": round(time.perf_counter() - t0, 2)},
+                             mask, subject)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks"))
-from bench_vessels import score  # noqa: E402
+from bench_vessels import write_scored  # noqa: E402
 
 from geopose.bench.cases import seed_range  # noqa: E402
 from geopose.cta.arteries import ArteryClassifier, load_artery_classifier  # noqa: E402
@@ -94,10 +94,7 @@ def main() -> int:
                     kept = np.zeros(work_shape, bool)
                     kept[tuple(d["idx"][p >= cut].T)] = True
                     mask = _back_to_full(subject.cta.like(kept.astype(np.uint8)), subject.cta) > 0
-                    row = {"seed": seed, "variant": name, "cut": cut, **score(mask, subject.labels, subject.centerlines)}
-                    f.write(json.dumps(row) + "\n")
-                    print(seed, f"{name:<15} {cut} P {row['precision']:.3f} R {row['recall']:.3f} "
-                          f"carotid clR {row['carotid_centreline_recall']:.3f}", flush=True)
+                    write_scored(f, {"seed": seed, "variant": name, "cut": cut}, mask, subject)
     return 0
 
 
