@@ -267,8 +267,8 @@ def mirror_outcomes(cases: list[dict]) -> dict[str, int]:
 
 def mirrored_markdown(as_given_cases: list[dict], mirrored: list[dict]) -> list[str]:
     """The mirror test on the subjects' CTAs as given (``as_given_cases``: the benchmark's cases, or their
-    ``summary["mirror_tests"]``) and mirrored
-    left-right (``mirrored``: ``run.evaluate_mirrored`` cases): outcomes, flags, targets, margins."""
+    ``summary["mirror_tests"]``) and mirrored left-right (``mirrored``: ``run.evaluate_mirrored`` cases): outcomes,
+    flags, targets, margins."""
     as_given, counts = mirror_outcomes(as_given_cases), mirror_outcomes(mirrored)
     flags = [f for c in mirrored for f in c["quality"].values()]
     lines = ["", "## The mirror test: the CTA as given and mirrored left-right", "",

@@ -43,7 +43,8 @@ from ..register.tto import TTOSchedule, test_time_optimise, tto_views
 from ..render.renderer import Renderer
 from .cases import BenchCase, flipped_left_right
 
-__all__ = ["BenchSettings", "row_names", "evaluate_case", "evaluate_mirrored", "MIRRORED_SUFFIX", "LEARNED_ROW", "NATIVE_TTO_ROW", "DRIFT_ROW", "INSTANT_ROW",
+__all__ = ["BenchSettings", "row_names", "evaluate_case", "evaluate_mirrored", "MIRRORED_SUFFIX", "LEARNED_ROW",
+           "NATIVE_TTO_ROW", "DRIFT_ROW", "INSTANT_ROW",
            "SEARCH_ROW", "UPPER_BOUND_ROW", "UPPER_BOUND_SEARCH_ROW"]
 
 #: The default registration's rows (the targets refer to them).

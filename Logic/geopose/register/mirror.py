@@ -38,7 +38,8 @@ from .opacified import selection_judge
 from .progress import Monitor
 from .tournament import Tournament
 
-__all__ = ["MIRROR_TTO_ITERATIONS", "MIRROR_LOSS_MARGIN", "EQUAL_EFFORT_FAIL_MARGIN", "SIDES_ALIKE_NOTE", "MirrorTest", "mirrored_volume", "mirror_test", "work_factors"]
+__all__ = ["MIRROR_TTO_ITERATIONS", "MIRROR_LOSS_MARGIN", "EQUAL_EFFORT_FAIL_MARGIN", "SIDES_ALIKE_NOTE", "MirrorTest",
+           "mirrored_volume", "mirror_test", "short_fit_loss", "work_factors"]
 
 #: TTO steps of the mirrored hypothesis, from the networks' estimate, and the share of them at half size (its start,
 #: common-axis search and last pose are scored at full size).
@@ -101,7 +102,7 @@ class MirrorTest:
         """:data:`SIDES_ALIKE_NOTE` where the result is not failed but either margin is at most ``MIRROR_LOSS_MARGIN``,
         else None."""
         equal = self.equal_effort_margin
-        if self.mirrored or min(self.margin, self.margin if equal is None else equal) > MIRROR_LOSS_MARGIN:
+        if self.mirrored or min(m for m in (self.margin, equal) if m is not None) > MIRROR_LOSS_MARGIN:
             return None
         return SIDES_ALIKE_NOTE.format(margin=self.margin, equal=equal, limit=MIRROR_LOSS_MARGIN)
 
@@ -155,8 +156,9 @@ def mirror_test(renderer: Renderer, views: Mapping[str, PreparedDSA], tournament
         loss = pair_objective(judge, {k: shift @ T for k, T in tournament.result.poses.items()}, views, objective)
     plane = midsagittal_plane(work.cta)
     mirrored_loss = short_fit_loss(mirrored_volume(work, plane), renderer.engine, views, shift @ estimate, rig, objective, device)
-    if mirrored_loss - loss < -MIRROR_LOSS_MARGIN:  # failed already: the comparison with equal effort cannot undo it
-        return MirrorTest(loss, mirrored_loss, None, plane)
+    against_result = MirrorTest(loss, mirrored_loss, None, plane)
+    if against_result.mirrored:  # failed already: the comparison with equal effort cannot undo it
+        return against_result
     monitor.step("mirror", 0.6, "the CTA as given through the same short fit (equal effort)")
     return MirrorTest(loss, mirrored_loss, short_fit_loss(work, renderer.engine, views, shift @ estimate, rig, objective,
                                                           device), plane)
