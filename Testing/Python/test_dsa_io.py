@@ -363,3 +363,128 @@ def test_run_contract_errors():
         DSARun(np.full((2, 40, 40), np.nan), det, angles)
     with pytest.raises(InputError, match="SID"):
         DSARun(np.zeros((2, 40, 40)), det, CArmAngles(0.0, 0.0, 1100.0, 700.0))
+
+
+# ------------------------------------------------------------------ native runs (mask subtraction)
+
+
+def _native_run(t: int = 6, shift_px: tuple[int, int] = (0, 0), relationship: str = "LIN") -> tuple[DSARun, np.ndarray, np.ndarray]:
+    """A native run of ``t`` frames: frames 0-1 the head alone (a smooth skull-like attenuation), frames 2.. the head
+    moved by ``shift_px`` (rows down, columns left) with a vessel whose contrast rises; X-ray intensities (LIN) or
+    their logarithm (LOG). Returns the run, the skull and the vessel's added attenuation per frame ``(t, H, W)``."""
+    h, w = 64, 80
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    skull = 2.5 * np.exp(-(((y - 30) / 22) ** 2 + ((x - 40) / 28) ** 2)) + 0.4 * np.sin(x / 5.0) * np.cos(y / 7.0) + 0.5
+    vessel = np.exp(-((x - 0.5 * y - 20) / 1.5) ** 2) * ((y > 10) & (y < 55))
+    added = np.zeros((t, h, w))
+    moved = np.roll(skull, (shift_px[0], -shift_px[1]), axis=(0, 1))
+    log_intensity = np.empty((t, h, w))
+    for k in range(t):
+        added[k] = 0.0 if k < 2 else 0.3 * (k - 1) * vessel
+        log_intensity[k] = np.log(4000.0) - (skull if k < 2 else moved) - added[k]
+    frames = np.round(np.exp(log_intensity)) if relationship == "LIN" else np.round(1000.0 * log_intensity)
+    return _run(frames.astype(np.float32), offset=(0.0, 0.0)), skull, added
+
+
+def _write_native(run: DSARun, path: Path, plan, relationship: str = "LIN", sign: int | None = None) -> Path:
+    from geopose.dsa.subtraction import MaskSubtraction
+
+    write_dsa_dicom(run, path, mask_subtraction=MaskSubtraction(**plan, relationship=relationship))
+    if sign is not None or relationship != "LIN":
+        ds = pydicom.dcmread(path)
+        if relationship == "LOG":
+            ds.RescaleSlope, ds.RescaleIntercept = "0.001", "0"  # the stored logarithm, x 1000
+        if sign is not None:
+            ds.PixelIntensityRelationshipSign = sign
+        ds.save_as(path)
+    return path
+
+
+def test_a_native_run_is_read_subtracted_as_its_mask_subtraction_sequence_says(tmp_path: Path):
+    """A native run's frames are radiographs (the skull in each); its Mask Subtraction Sequence (AVG_SUB of frames 1-2)
+    is applied in the logarithm of the intensity: the contrast frames come out with the skull gone and the vessel's
+    added attenuation left, on the 8-bit display scale, MONOCHROME2."""
+    run, skull, added = _native_run()
+    path = _write_native(run, tmp_path / "native.dcm", {"mask_frames": (0, 1), "contrast_frames": (2, 3, 4, 5)})
+    ds = pydicom.dcmread(path, stop_before_pixels=True)
+    assert ds.RecommendedViewingMode == "SUB" and ds.MaskSubtractionSequence[0].MaskOperation == "AVG_SUB"
+    assert list(ds.MaskSubtractionSequence[0].MaskFrameNumbers) == [1, 2]
+    assert list(ds.MaskSubtractionSequence[0].ApplicableFrameRange) == [3, 6]
+    read = read_dsa(path)
+    assert read.frames.shape == (4, 64, 80)
+    assert "AVG_SUB" in read.metadata["subtraction"] and "frame(s) 1, 2" in read.metadata["subtraction"]
+    assert read.photometric_interpretation == "MONOCHROME2" and read.metadata["bits_stored"] == 8
+    attenuation = read.attenuation()
+    assert np.corrcoef(attenuation.ravel(), added[2:].ravel())[0, 1] > 0.999
+    peak = np.percentile(attenuation.max(axis=0), 99.9) - attenuation.min()
+    assert peak == pytest.approx(0.75 * 255, rel=0.02)
+    background = added[-1] < 1e-3
+    assert attenuation[:, background].std() < 0.01 * peak  # the skull has gone: flat beside the vessel
+    # the same frames read natively (no sequence) keep the skull: what GeoPose read before
+    plain = read_dsa(write_dsa_dicom(run, tmp_path / "plain.dcm"))
+    assert "subtraction" not in plain.metadata and plain.frames.shape == (6, 64, 80)
+    skull_left = plain.attenuation()[2:, background]
+    assert skull_left.std() > 0.1 * np.ptp(plain.attenuation())
+
+
+def test_the_mask_sub_pixel_shift_moves_the_mask_as_dicom_says(tmp_path: Path):
+    """The live frames see the head 2 rows down and 3 columns left of the mask: Mask Sub-pixel Shift (2, 3) (positive
+    row: towards the last row; positive column: towards the first column) takes the skull out; no shift or the
+    opposite one leaves it as residue."""
+    run, skull, added = _native_run(shift_px=(2, 3))
+    base = {"mask_frames": (0, 1), "contrast_frames": (2, 3, 4, 5)}
+    residue = {}
+    for name, shift in (("right", (2.0, 3.0)), ("none", (0.0, 0.0)), ("opposite", (-2.0, -3.0))):
+        read = read_dsa(_write_native(run, tmp_path / f"{name}.dcm", base | {"shift_px": shift}))
+        inner = (slice(6, -6), slice(6, -6))
+        a = read.attenuation()[:, inner[0], inner[1]]
+        residue[name] = 1.0 - np.corrcoef(a.ravel(), added[2:, inner[0], inner[1]].ravel())[0, 1]
+    assert residue["right"] < 0.001
+    assert residue["none"] > 20 * residue["right"] and residue["opposite"] > 20 * residue["right"]
+
+
+def test_log_runs_and_the_intensity_relationship_sign(tmp_path: Path):
+    """LOG values are subtracted as stored; a Pixel Intensity Relationship Sign of -1 (values fall with intensity)
+    turns the difference round, so the vessel comes out bright either way."""
+    run, _, added = _native_run(relationship="LOG")
+    plan = {"mask_frames": (0, 1), "contrast_frames": (2, 3, 4, 5)}
+    read = read_dsa(_write_native(run, tmp_path / "log.dcm", plan, relationship="LOG"))
+    assert "LOG values" in read.metadata["subtraction"]
+    assert np.corrcoef(read.attenuation().ravel(), added[2:].ravel())[0, 1] > 0.999
+    flipped = _run(-run.frames, offset=(0.0, 0.0))
+    read = read_dsa(_write_native(flipped, tmp_path / "log_minus.dcm", plan, relationship="LOG", sign=-1))
+    assert np.corrcoef(read.attenuation().ravel(), added[2:].ravel())[0, 1] > 0.999
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda item: setattr(item, "MaskOperation", "TID"), "asks for TID"),
+    (lambda item: setattr(item, "MaskFrameNumbers", [1, 9]), r"Mask Frame Numbers \[1, 9\] .* outside the run.s frames 1..6"),
+    (lambda item: setattr(item, "ApplicableFrameRange", [3, 7]), "Applicable Frame Range"),
+    (lambda item: setattr(item, "ApplicableFrameRange", [3, 4, 5]), "is not pairs"),
+    (lambda item: delattr(item, "MaskFrameNumbers"), "names no Mask Frame Numbers"),
+    (lambda item: setattr(item, "MaskSubPixelShift", [0.5, 300.0]), "Mask Sub-pixel Shift"),
+])
+def test_a_mask_subtraction_that_cannot_be_followed_is_refused_by_name(tmp_path: Path, change, message):
+    run, _, _ = _native_run()
+    path = _write_native(run, tmp_path / "native.dcm", {"mask_frames": (0, 1), "contrast_frames": (2, 3, 4, 5)})
+    ds = pydicom.dcmread(path)
+    change(ds.MaskSubtractionSequence[0])
+    ds.save_as(path)
+    with pytest.raises(InputError, match=message) as err:
+        read_dsa(path)
+    assert "export the run subtracted" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_contrast_frame_averaging_and_the_default_frame_range(tmp_path: Path):
+    """Contrast Frame Averaging 2 averages each contrast frame with the next before the mask is subtracted; without an
+    Applicable Frame Range every frame that leaves room for the averaging is a contrast frame (1..T-1 here)."""
+    run, _, added = _native_run()
+    path = _write_native(run, tmp_path / "avg.dcm", {"mask_frames": (0,), "contrast_frames": (2, 3, 4), "contrast_averaging": 2})
+    read = read_dsa(path)
+    expected = (added[2:5] + added[3:6]) / 2
+    assert read.frames.shape == (3, 64, 80) and "2 contrast frames averaged" in read.metadata["subtraction"]
+    assert np.corrcoef(read.attenuation().ravel(), expected.ravel())[0, 1] > 0.999
+    ds = pydicom.dcmread(path)
+    del ds.MaskSubtractionSequence[0].ApplicableFrameRange
+    ds.save_as(path)
+    assert read_dsa(path).frames.shape == (5, 64, 80)  # frames 1..5 of 6, each averaged with the next

@@ -1,4 +1,4 @@
-"""DSA input: the run contract, readers, writers, geometry overrides and preprocessing."""
+"""DSA input: the run contract, readers (native runs subtracted), writers, geometry overrides and preprocessing."""
 
 from ..lazy import lazy_exports
 
@@ -12,6 +12,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         ),
         "readers": ("read_dsa", "run_from_geometry", "sidecar_path"),
         "run": ("GEOMETRY_KEYS", "LAT_ROLE", "PA_ROLE", "DSARun"),
+        "subtraction": ("MaskSubtraction", "read_mask_subtraction", "subtract_mask"),
         "writers": ("quantize_frames", "write_dsa_dicom", "write_dsa_nifti"),
     },
 )

@@ -21,6 +21,8 @@ Geometry from DICOM:
   :meth:`DSARun.attenuation`). A run that declares MONOCHROME1 but whose frames look like
   MONOCHROME2 (the border, usually air, brighter than the centre as stored) is refused
   unless ``photometric_interpretation`` is given.
+* A native run (every frame a plain radiograph) whose Mask Subtraction Sequence prescribes a mask (AVG_SUB) is
+  subtracted as it says (:mod:`geopose.dsa.subtraction`; ``metadata['subtraction']`` says how).
 
 Every geometry value can be overridden by keyword (see ``run.GEOMETRY_KEYS``). Every
 reader, and :func:`run_from_geometry` for runs that come from no file, ends in the same
@@ -49,6 +51,7 @@ from ..jsonio import read_json
 from .run import (
     GEOMETRY_KEYS, GEOMETRY_SOURCES, PHOTOMETRIC, REQUIRED_GEOMETRY_KEYS, DSARun, check_frames_shape, check_geometry, cli_hint,
 )
+from .subtraction import read_mask_subtraction, subtract_mask
 
 __all__ = ["read_dsa", "run_from_geometry", "sidecar_path", "NIFTI_EXTENSIONS", "SIDECAR_KEYS"]
 
@@ -267,7 +270,13 @@ def _read_dicom_file(path: Path, overrides: dict, photometric: str | None) -> DS
     found, sources, geo_notes = _dicom_geometry(ds, frames.shape[1], frames.shape[2], path.name)
     meta = _dicom_metadata(ds, path, [path])
     meta.update(notes, **geo_notes)
-    _photometric(_declared_photometric(ds), photometric, frames, path.name, meta)
+    declared = _declared_photometric(ds)
+    plan = read_mask_subtraction(ds, len(frames), path.name)
+    if plan is not None:  # a native run: subtracted here, onto an 8-bit display's scale, MONOCHROME2
+        frames = subtract_mask(frames, plan)
+        meta.update(subtraction=plan.describe(), bits_stored=8)
+        declared = "MONOCHROME2"
+    _photometric(declared, photometric, frames, path.name, meta)
     return _assemble(frames, found, sources, overrides, path.name, lambda k: GEOMETRY_SOURCES[k], meta)
 
 

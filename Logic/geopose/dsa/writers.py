@@ -16,6 +16,7 @@ from pydicom.uid import ExplicitVRLittleEndian, XRayAngiographicImageStorage, ge
 from .readers import sidecar_path
 from ..errors import InputError
 from .run import DSARun
+from .subtraction import MaskSubtraction, mask_subtraction_item
 
 __all__ = ["write_dsa_dicom", "write_dsa_nifti", "quantize_frames"]
 
@@ -63,6 +64,7 @@ def write_dsa_dicom(
     burn_in_text: str | None = None,
     bits: int = 16,
     study_instance_uid: str | None = None,
+    mask_subtraction: MaskSubtraction | None = None,
 ) -> Path:
     """Write ``run`` as an uncompressed DICOM XA multi-frame (X-Ray Angiographic Image Storage).
 
@@ -76,7 +78,9 @@ def write_dsa_dicom(
     DistanceSourceToPatient, ImagerPixelSpacing (row, col), FrameTime + FrameIncrementPointer,
     and, for a non-zero principal offset, DetectorActiveOrigin/DetectorActiveDimensions/
     PhysicalDetectorSize encoding it as the reader decodes it. ``burn_in_text`` is drawn
-    into every frame (BurnedInAnnotation YES).
+    into every frame (BurnedInAnnotation YES). ``mask_subtraction``: ``run`` is native (X-ray intensities, LIN) and
+    is written as an angiography system archives it, with the Mask Subtraction Sequence that subtracts it
+    (Recommended Viewing Mode SUB).
     """
     if bits not in (8, 16):
         raise InputError(f"bits must be 8 or 16, got {bits}")
@@ -95,7 +99,7 @@ def write_dsa_dicom(
     ds.file_meta = meta
     ds.SOPClassUID, ds.SOPInstanceUID = XRayAngiographicImageStorage, sop_uid
     ds.Modality = "XA"
-    ds.ImageType = ["DERIVED", "PRIMARY", "SINGLE PLANE", "SINGLE A"]
+    ds.ImageType = ["ORIGINAL" if mask_subtraction else "DERIVED", "PRIMARY", "SINGLE PLANE", "SINGLE A"]
     ds.PatientName, ds.PatientID = patient_name, patient_id
     ds.StudyInstanceUID = study_instance_uid or run.metadata.get("StudyInstanceUID") or generate_uid()
     ds.SeriesInstanceUID = generate_uid()
@@ -127,6 +131,10 @@ def write_dsa_dicom(
     ds.HighBit = bits - 1
     ds.PixelRepresentation = 0
     ds.PixelIntensityRelationship = "LIN"
+    if mask_subtraction is not None:
+        ds.PixelIntensityRelationship = mask_subtraction.relationship
+        ds.MaskSubtractionSequence = [mask_subtraction_item(mask_subtraction)]
+        ds.RecommendedViewingMode = "SUB"
     if (slope, intercept) != (1.0, 0.0):
         ds.RescaleSlope, ds.RescaleIntercept = f"{slope:.10g}", f"{intercept:.10g}"
         ds.RescaleType = "US"

@@ -36,12 +36,14 @@ def _write_volume(vol: Volume, path: Path, dtype) -> None:
 
 
 def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: str | None = None, max_matrix_px: int = 1024,
-                  pathology: str | None = None) -> dict:
+                  pathology: str | None = None, native_runs: bool = False) -> dict:
     """Generate subject ``seed`` and write the six files into ``out``; returns timings (s).
 
     ``injection``: one of ``dsa.RUNS`` (default: a routine catheter position drawn from the seed);
     ``pathology``: ``"avm"`` draws the subject with an arteriovenous malformation (implied by the
-    ``"avm"`` run). ``truth.json`` records both, the AVM and the label values the runs fill."""
+    ``"avm"`` run). ``native_runs``: the runs unsubtracted, as angiography systems archive them (a mask frame first,
+    16-bit X-ray intensities, a Mask Subtraction Sequence that subtracts them; same seed, same subtracted runs but for
+    8-bit rounding and burnt-in text). ``truth.json`` records all three, the AVM and the label values the runs fill."""
     pathology = pathology or (DENSE_RUNS[injection].pathology if injection in DENSE_RUNS else None)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -53,7 +55,8 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
     t1 = time.perf_counter()
     drr = dsa_renderer(subject, injection)
     acqs, iso = sample_biplane(rng, subject)
-    runs = [simulate_dsa(subject, a, a.pose(iso), rng, injection=injection, drr=drr, max_matrix_px=max_matrix_px) for a in acqs]
+    runs = [simulate_dsa(subject, a, a.pose(iso), rng, injection=injection, drr=drr, max_matrix_px=max_matrix_px, native=native_runs)
+            for a in acqs]
     timings["dsa_s"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     _write_volume(subject.cta, out / "cta.nii.gz", np.int16)
@@ -67,8 +70,9 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
     views = {}
     study = generate_uid(entropy_srcs=["geopose-phantom", str(seed)])  # one biplane acquisition: one study
     for acq, sim, name in zip(acqs, runs, ("pa", "lat")):
-        write_dsa_dicom(sim.run, out / f"dsa_{name}.dcm", bits=8, series_description=f"GeoPose phantom DSA {acq.view_role}",
-                        study_instance_uid=study)
+        write_dsa_dicom(sim.run, out / f"dsa_{name}.dcm", bits=16 if native_runs else 8, study_instance_uid=study,
+                        series_description=f"GeoPose phantom DSA {acq.view_role}{' (native)' if native_runs else ''}",
+                        mask_subtraction=sim.subtraction)
         views[name] = {
             "file": f"dsa_{name}.dcm",
             "pose_camera_to_world": sim.pose.tolist(),
@@ -79,6 +83,7 @@ def write_phantom(seed: int, out: Path, *, spacing_mm: float = 1.0, injection: s
             "sid_mm": acq.angles.sid_mm, "sod_mm": acq.angles.sod_mm,
             "acquired_matrix_px": list(acq.detector.shape), "written_matrix_px": list(sim.run.detector.shape),
             "pixel_spacing_mm": list(sim.run.detector.spacing_mm), "frames": acq.n_frames, "frame_time_ms": acq.frame_time_ms,
+            "native": native_runs, "mask_frames": 1 if native_runs else 0,
             "carotid_centerlines_px": {k: np.round(v, 2).tolist() for k, v in sim.carotids.items()},
         }
     early, late, venous = opacified_labels(injection)
@@ -101,7 +106,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.spacing_mm < 0.5:
         raise InputError(f"--spacing-mm must be at least 0.5 mm, got {args.spacing_mm}")
     t = write_phantom(args.seed, Path(args.out), spacing_mm=args.spacing_mm, injection=args.injection, max_matrix_px=args.max_matrix_px,
-                      pathology=args.pathology)
+                      pathology=args.pathology, native_runs=args.native_runs)
     print(f"phantom seed {args.seed} -> {args.out}: " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()))
     return 0
 
@@ -118,4 +123,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pathology", choices=PATHOLOGIES, default=None,
                    help="draw the subject with a pathology: avm (a nidus fed by an M2 branch, draining into the sagittal sinus)")
     p.add_argument("--max-matrix-px", type=int, default=1024, help="cap on the written DSA matrix (px); the field of view is kept")
+    p.add_argument("--native-runs", action="store_true",
+                   help="write the runs unsubtracted, as angiography systems archive them: a mask frame, then the live "
+                   "frames, with the Mask Subtraction Sequence that subtracts them (16-bit, about twice the size)")
     p.set_defaults(func=_run)

@@ -30,6 +30,7 @@ from torch.nn import functional as F
 
 from ..dsa import DSARun
 from ..dsa.run import LAT_ROLE, PA_ROLE
+from ..dsa.subtraction import MaskSubtraction
 from ..geometry.detector import CArmAngles, Detector
 from ..geometry.poses import pose_from_carm_angles, project_points
 from ..geometry.rigid import RigidTransform
@@ -96,6 +97,8 @@ RUNS = tuple(sorted(INJECTIONS)) + tuple(sorted(DENSE_RUNS))
 #: Peak log-attenuation of the thickest head path; sets the noise contrast inside vs outside.
 HEAD_ATTENUATION = 4.0
 STORED_MAX = 255
+#: X-ray intensity (stored value, 12 bits) behind no attenuation in a native run.
+NATIVE_FULL_INTENSITY = 4000.0
 #: Range of the per-run quantum-noise sd (log-attenuation units) behind zero attenuation;
 #: it grows like ``exp(attenuation / 2)`` through the head.
 QUANTUM_NOISE_SD = (0.010, 0.02)
@@ -186,7 +189,8 @@ class SyntheticDSA:
     """A simulated run with its ground truth. ``map`` is the temporal maximum of the
     attenuation-like frames; ``carotids`` maps ``ica_left``/``ica_right`` to projected
     centerline pixels ``(N, 2)`` (row, col) of the written matrix; ``pose`` is the true
-    camera-to-world 4x4 in the centred native frame."""
+    camera-to-world 4x4 in the centred native frame. ``subtraction``: how a native ``run`` is subtracted (None: the
+    run is stored subtracted)."""
 
     run: DSARun
     map: np.ndarray
@@ -194,6 +198,7 @@ class SyntheticDSA:
     carotids: dict[str, np.ndarray]
     pose: np.ndarray
     injection: str
+    subtraction: MaskSubtraction | None = None
 
 
 def opacified_labels(injection: str) -> tuple[list[int], list[int], list[int]]:
@@ -257,10 +262,10 @@ def _moved(img: torch.Tensor, rng: np.random.Generator, amplitude: float) -> tor
     return F.grid_sample(img[None, None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0, 0]
 
 
-def _burn_text(frames: np.ndarray, rng: np.random.Generator, view: str, primary_deg: float, value: float) -> None:
-    """Burn a scanner-like annotation into every frame (in place). The side marker tells the truth
-    (docs/conventions.md, section 7): in a PA an "R" on the patient's right (the first columns); in a
-    lateral the side of the detector ("R" for RAO, negative primary; "L" for LAO) at the last columns."""
+def _burn_text(frames: np.ndarray, rng: np.random.Generator, view: str, primary_deg: float, value: float) -> np.ndarray:
+    """Burn a scanner-like annotation into every frame (in place) and return where it lies (bool (H, W)). The side
+    marker tells the truth (docs/conventions.md, section 7): in a PA an "R" on the patient's right (the first columns);
+    in a lateral the side of the detector ("R" for RAO, negative primary; "L" for LAO) at the last columns."""
     t, h, w = frames.shape
     size = max(10, h // 40)
     font = ImageFont.load_default(size=size)
@@ -274,7 +279,9 @@ def _burn_text(frames: np.ndarray, rng: np.random.Generator, view: str, primary_
         draw.text((int(0.9 * w), int(0.5 * h)), "R" if primary_deg < 0 else "L", fill=255, font=font)
     else:
         draw.text((x0, int(0.5 * h)), "R", fill=255, font=font)
-    frames[:, np.asarray(layer) > 127] = value
+    ink = np.asarray(layer) > 127
+    frames[:, ink] = value
+    return ink
 
 
 class ImagedHead(Protocol):
@@ -294,12 +301,16 @@ def simulate_dsa(
     drr: DRR | None = None,
     render_px: int = 256,
     max_matrix_px: int = 1024,
+    native: bool = False,
 ) -> SyntheticDSA:
     """Simulate one DSA run of ``subject`` seen from ``pose`` (camera-to-world, centred
     native frame) with the intrinsics and timing of ``acquisition``. Given ``drr``
     (channels total, cranium, early, late, and venous for a dense run), ``subject`` may be
     any :class:`ImagedHead`, e.g. a real CT whose artery channels are empty (a contrast-free run).
-    A dense run (``DENSE_RUNS``) scales the contrast and the bolus width and adds a venous wave."""
+    A dense run (``DENSE_RUNS``) scales the contrast and the bolus width and adds a venous wave. ``native``: the run as
+    an angiography system archives it, unsubtracted (X-ray intensities, a mask frame before the T live frames, the
+    burnt-in text in each) with the :class:`MaskSubtraction` that subtracts it; the same draws, so the subtracted
+    run is the same but for the 8-bit rounding and the text."""
     det_full = acquisition.detector
     det_out = det_full if max(det_full.shape) <= max_matrix_px else det_full.resized(max_matrix_px)
     det_r = det_full.resized(render_px)
@@ -366,11 +377,18 @@ def simulate_dsa(
     scale = 0.75 * STORED_MAX / max(float(torch.quantile(signal.amax(0)[::4, ::4].flatten(), 0.999)), 1e-6)
     offset = 0.06 * STORED_MAX
     att = torch.where(coll, frames * scale + offset, torch.zeros_like(frames)).clamp(0, STORED_MAX).round().numpy()
-    _burn_text(att, rng, acquisition.view_role, acquisition.angles.primary_deg, STORED_MAX)
-    run = DSARun.from_attenuation(
-        att, det_out, acquisition.angles, acquisition.frame_time_ms,
-        {"source": "geopose.phantom", "seed": subject.seed, "injection": injection},
-    )
+    ink = _burn_text(att, rng, acquisition.view_role, acquisition.angles.primary_deg, STORED_MAX)
+    metadata = {"source": "geopose.phantom", "seed": subject.seed, "injection": injection}
+    subtraction = None
+    if native:  # the mask frame (the head alone) first, then mask + each frame's change; X-ray intensities
+        added = torch.cat([torch.zeros((1, H, W)), frames])
+        intensity = NATIVE_FULL_INTENSITY * torch.exp(-(atten + added).clamp(min=0.0))
+        stored = torch.where(coll, intensity, torch.zeros_like(intensity)).round().numpy()
+        stored[:, ink] = NATIVE_FULL_INTENSITY
+        run = DSARun(stored, det_out, acquisition.angles, acquisition.frame_time_ms, metadata | {"native": True})
+        subtraction = MaskSubtraction(mask_frames=(0,), contrast_frames=tuple(range(1, T + 1)))
+    else:
+        run = DSARun.from_attenuation(att, det_out, acquisition.angles, acquisition.frame_time_ms, metadata)
     cran_full = F.interpolate(cran[None, None].float(), size=(H, W), mode="bilinear", align_corners=False)[0, 0]
     mask = (cran_full > 0.02 * float(cran.max())).numpy()
     carotids = {}
@@ -381,4 +399,4 @@ def simulate_dsa(
         pts = np.concatenate(lines)
         px, _ = project_points(p0[0].numpy(), det_out, pts)
         carotids[name] = px
-    return SyntheticDSA(run, att.max(0), mask, carotids, p0[0].numpy(), injection)
+    return SyntheticDSA(run, att.max(0), mask, carotids, p0[0].numpy(), injection, subtraction)
