@@ -488,3 +488,15 @@ def test_contrast_frame_averaging_and_the_default_frame_range(tmp_path: Path):
     del ds.MaskSubtractionSequence[0].ApplicableFrameRange
     ds.save_as(path)
     assert read_dsa(path).frames.shape == (5, 64, 80)  # frames 1..5 of 6, each averaged with the next
+
+
+def test_a_native_run_of_unknown_intensity_relationship_is_refused(tmp_path: Path):
+    """Whether to take the logarithm first depends on Pixel Intensity Relationship: a value outside LIN, LOG and DISP is
+    refused by name rather than guessed."""
+    run, _, _ = _native_run()
+    path = _write_native(run, tmp_path / "native.dcm", {"mask_frames": (0, 1), "contrast_frames": (2, 3, 4, 5)})
+    ds = pydicom.dcmread(path)
+    ds.PixelIntensityRelationship = "OTHER"
+    ds.save_as(path)
+    with pytest.raises(InputError, match="Pixel Intensity Relationship is 'OTHER', not one of LIN, LOG, DISP"):
+        read_dsa(path)

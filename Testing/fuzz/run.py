@@ -86,7 +86,9 @@ def document(report: harness.Report, seconds: float, command: str) -> str:
         "",
         "Every GeoPose input reader, fed seeded mutations of valid files: bit flips anywhere or in the header, "
         "truncation, and header fields set to damaging values (sizes, bit depths, transfer syntax, angles, distances, "
-        "spacings, element lengths, deleted tags; NIfTI/NRRD/MetaImage header fields; JSON values of the wrong type, "
+        "spacings, element lengths, deleted tags; a native run's Mask Subtraction Sequence: operation, mask frames, "
+        "frame range, sub-pixel shift, contrast averaging, intensity relationship and its sign, the sequence deleted; "
+        "NIfTI/NRRD/MetaImage header fields; JSON values of the wrong type, "
         "deep nesting; manifest entries as lists, without sizes, pointing outside the folder). Each case runs in a "
         "forked worker with a memory limit and a timeout (`Testing/fuzz/harness.py`); the targets and the verification "
         "are in `Testing/fuzz/targets.py`.",

@@ -1,7 +1,8 @@
 """The GeoPose inputs the fuzz suite mutates, and how an accepted mutation is verified.
 
 Originals (built once per run into a folder): a phantom DSA run as DICOM XA (uncompressed,
-JPEG Baseline, JPEG Lossless, JPEG 2000 Lossless, RLE), a CT series of 12 DICOM slices, a CTA
+JPEG Baseline, JPEG Lossless, JPEG 2000 Lossless, RLE; and archived native, with the Mask Subtraction
+Sequence that subtracts it), a CT series of 12 DICOM slices, a CTA
 as NIfTI (.nii, .nii.gz), NRRD and MetaImage, a DSA run as NIfTI + JSON sidecar, and a models
 folder with its manifest. A case mutates one file (bit flips anywhere or in the header,
 truncation, or a header field set to a damaging value), reads it with the GeoPose reader and
@@ -43,6 +44,7 @@ from geopose.checksums import file_sha256
 from geopose.cta import load_cta, save_volume, volume_from_sitk
 from geopose.dsa import DSARun, read_dsa, write_dsa_dicom, write_dsa_nifti
 from geopose.dsa.readers import sidecar_path
+from geopose.dsa.subtraction import MaskSubtraction, subtract_mask
 from geopose.errors import InputError
 from geopose.geometry import CArmAngles, Detector
 from geopose.cta.dicom_series import TILT_OFFSET_MM
@@ -54,7 +56,7 @@ __all__ = ["TARGETS", "build_originals", "run_case", "describe_case"]
 
 XA_KINDS = ("xa_uncompressed", "xa_jpeg_baseline", "xa_jpeg_lossless", "xa_jpeg2000", "xa_rle")
 CTA_FILES = {"cta_nii": "cta.nii", "cta_nii_gz": "cta.nii.gz", "cta_nrrd": "cta.nrrd", "cta_mha": "cta.mha"}
-TARGETS = XA_KINDS + ("ct_series",) + tuple(CTA_FILES) + ("dsa_sidecar", "models_manifest")
+TARGETS = XA_KINDS + ("xa_native", "ct_series") + tuple(CTA_FILES) + ("dsa_sidecar", "models_manifest")
 MUTATIONS = ("flip", "flip_header", "truncate", "field")
 
 
@@ -69,6 +71,14 @@ def _phantom_run(frames: int = 4, size: int = 64) -> DSARun:
                     for t in range(frames)])
     det = Detector(size, size, (0.6, 0.6), 1100.0)
     return DSARun.from_attenuation(att * 20, det, CArmAngles(28.0, -6.0, 1100.0, 750.0), 66.7, {})
+
+
+def _native_run(frames: int = 5, size: int = 64) -> DSARun:
+    """The head of :func:`_phantom_run` archived native: X-ray intensities, frame 1 the mask (no contrast)."""
+    att = _phantom_run(frames, size).attenuation() / 400.0
+    att[0] = att[1:].min(axis=0)
+    return DSARun(np.round(4000.0 * np.exp(-att)), Detector(size, size, (0.6, 0.6), 1100.0),
+                  CArmAngles(28.0, -6.0, 1100.0, 750.0), 66.7, {})
 
 
 def _fixed_identity(path: Path, salt: str) -> Path:
@@ -144,6 +154,8 @@ def build_originals(root: Path) -> dict[str, Any]:
     run = _phantom_run()
     raw = _fixed_identity(write_dsa_dicom(run, root / "xa_uncompressed.dcm"), "xa16")
     raw8 = _fixed_identity(write_dsa_dicom(run, root / "xa8.dcm", bits=8), "xa8")
+    _fixed_identity(write_dsa_dicom(_native_run(), root / "xa_native.dcm",
+                                    mask_subtraction=MaskSubtraction((0,), (1, 2, 3, 4), shift_px=(0.5, -1.0))), "native")
     _encapsulated_copy(raw8, root / "xa_jpeg_baseline.dcm", JPEGBaseline8Bit, _jpeg_baseline, 8)
     _encapsulated_copy(raw, root / "xa_jpeg_lossless.dcm", JPEGLosslessSV1, lambda f: encode_jpeg_lossless(f, 16), 16)
     for name, syntax in (("xa_jpeg2000", JPEG2000Lossless), ("xa_rle", RLELossless)):
@@ -167,7 +179,7 @@ def build_originals(root: Path) -> dict[str, Any]:
         entries[kind] = {"file": f.name, "bytes": f.stat().st_size, "sha256": file_sha256(f)}
     (models / MANIFEST_NAME).write_text(json.dumps({"schema_version": 1, "models": entries}, indent=1))
     originals: dict[str, Any] = {}
-    for kind in XA_KINDS:
+    for kind in XA_KINDS + ("xa_native",):
         originals[kind] = _dsa_summary(read_dsa(root / f"{kind}.dcm"))
     originals["ct_series"] = _volume_summary(load_cta(root / "ct_series"))
     for kind, name in CTA_FILES.items():
@@ -229,6 +241,12 @@ XA_FIELDS = (
     ("DistanceSourceToPatient", "num"), ("ImagerPixelSpacing", "num2"), ("FrameTime", "num"), ("RescaleSlope", "num"),
     ("RescaleIntercept", "num"), ("TransferSyntaxUID", "uid"), ("length", "length"), ("delete", "delete"),
 )
+#: (keyword, kind) of the Mask Subtraction Sequence's first item and the tags that say how to subtract.
+NATIVE_FIELDS = XA_FIELDS + (
+    ("MaskOperation", "mask_text"), ("MaskFrameNumbers", "mask_frames"), ("ApplicableFrameRange", "mask_frames"),
+    ("MaskSubPixelShift", "mask_num2"), ("ContrastFrameAveraging", "mask_int"), ("PixelIntensityRelationship", "relationship"),
+    ("PixelIntensityRelationshipSign", "sign"), ("RecommendedViewingMode", "viewing"), ("MaskSubtractionSequence", "delete_item"),
+)
 CT_FIELDS = (
     ("Rows", "int"), ("Columns", "int"), ("BitsStored", "int"), ("ImagePositionPatient", "num3"),
     ("ImageOrientationPatient", "num6"), ("PixelSpacing", "num2"), ("RescaleSlope", "num"), ("RescaleIntercept", "num"),
@@ -269,7 +287,9 @@ def _dicom_field(data: bytes, rng: np.random.Generator, fields: tuple) -> tuple[
         value = int(rng.choice([0, 1, 2**(8 * width) - 1, 2**(8 * width) - 16, int(rng.integers(0, 2**(8 * width)))]))
         return data[:at] + value.to_bytes(width, "little") + data[at + width:], f"length of {tag} = {value}"
     ds = pydicom.dcmread(io.BytesIO(data))
-    if kind == "delete":
+    if kind.startswith("mask_") or kind in ("relationship", "sign", "viewing", "delete_item"):
+        value, detail = _subtraction_field(ds, rng, keyword, kind)
+    elif kind == "delete":
         candidates = [e.keyword for e in ds if e.keyword and e.keyword != "PixelData"] + ["PixelData"]
         keyword = candidates[int(rng.integers(0, len(candidates)))]
         del ds[keyword]
@@ -291,6 +311,25 @@ def _dicom_field(data: bytes, rng: np.random.Generator, fields: tuple) -> tuple[
     except Exception as exc:  # pydicom cannot write the damaged value: keep the file as it was
         return data, f"{detail} (unwritable: {type(exc).__name__})"
     return buf.getvalue(), detail
+
+
+def _subtraction_field(ds: pydicom.Dataset, rng: np.random.Generator, keyword: str, kind: str) -> tuple[Any, str]:
+    """Set one tag of the mask subtraction (in the sequence's first item for ``mask_*`` kinds) to a damaging value."""
+    item = ds.MaskSubtractionSequence[0]
+    if kind == "delete_item":
+        del ds.MaskSubtractionSequence
+        return None, "delete MaskSubtractionSequence"
+    value: Any = {
+        "mask_text": lambda: str(rng.choice(["TID", "REV_TID", "NONE", "", "avg_sub", "AVG_SUB", "SUB"])),
+        "mask_frames": lambda: [int(v) for v in rng.choice([0, 1, 2, 3, 4, 5, 6, 65535], size=int(rng.integers(1, 5)))],
+        "mask_num2": lambda: [interesting_number(rng, 0.5), interesting_number(rng, -1.0)][: int(rng.integers(1, 3))],
+        "mask_int": lambda: int(rng.choice([0, 1, 2, 4, 5, 6, 65535])),
+        "relationship": lambda: str(rng.choice(["LIN", "LOG", "DISP", "", "OTHER"])),
+        "sign": lambda: int(rng.choice([-1, 1, 0, 32767])),
+        "viewing": lambda: str(rng.choice(["SUB", "NAT", ""])),
+    }[kind]()
+    setattr(item if kind.startswith("mask_") else ds, keyword, value)
+    return value, f"{keyword} = {value}"
 
 
 def _pixel_offset(data: bytes) -> int:
@@ -389,11 +428,32 @@ def _pydicom_dsa(path: Path) -> dict:
     spacing = tuple(float(v) for v in ds.ImagerPixelSpacing)
     frame_time = float(ds.FrameTime) if ds.get("FrameTime") not in (None, "") and float(ds.FrameTime) else None
     sid = float(ds.DistanceSourceToDetector)
+    plan = _pydicom_subtraction(ds, len(frames))
+    if plan is not None:
+        frames = subtract_mask(frames, plan)
+    photometric = "MONOCHROME2" if plan is not None else str(ds.PhotometricInterpretation)
     return {"frames": frames, "geometry": (
         (int(ds.Rows), int(ds.Columns)), spacing, (0.0, 0.0), sid,
         wrap_angle_deg("primary", float(ds.PositionerPrimaryAngle), PRIMARY_DEG),
         wrap_angle_deg("secondary", float(ds.PositionerSecondaryAngle), SECONDARY_DEG),
-        sid, float(ds.DistanceSourceToPatient), frame_time, str(ds.PhotometricInterpretation))}
+        sid, float(ds.DistanceSourceToPatient), frame_time, photometric)}
+
+
+def _pydicom_subtraction(ds: pydicom.Dataset, n_frames: int) -> MaskSubtraction | None:
+    """The AVG_SUB the first working item of the Mask Subtraction Sequence asks for, read with plain pydicom
+    (PS3.3 C.7.6.10: 1-based frames, the default frame range leaves room for the contrast averaging)."""
+    items = [i for i in ds.get("MaskSubtractionSequence") or [] if str(i.get("MaskOperation", "")).strip().upper() != "NONE"]
+    if not items:
+        return None
+    item = items[0]
+    as_list = lambda v: list(v) if isinstance(v, (list, pydicom.multival.MultiValue)) else [v]  # noqa: E731
+    averaging = int(item.get("ContrastFrameAveraging") or 1)
+    bounds = as_list(item.ApplicableFrameRange) if "ApplicableFrameRange" in item else [1, n_frames - averaging + 1]
+    contrast = sorted({k - 1 for a, b in zip(bounds[::2], bounds[1::2]) for k in range(int(a), int(b) + 1)})
+    relationship = str(ds.get("PixelIntensityRelationship") or "LIN").strip().upper()
+    return MaskSubtraction(tuple(int(v) - 1 for v in as_list(item.MaskFrameNumbers)), tuple(contrast),
+                           tuple(float(v) for v in item.get("MaskSubPixelShift") or (0.0, 0.0)), averaging,
+                           relationship, -1 if int(ds.get("PixelIntensityRelationshipSign") or 1) < 0 else 1)
 
 
 def _sidecar_oracle(image: Path, original: dict) -> dict:
@@ -559,10 +619,11 @@ def run_case(seed: int, index: int, root: Path, originals: dict, work: Path) -> 
         shutil.rmtree(case_dir)
     case_dir.mkdir(parents=True)
     original = originals[target]
-    if target in XA_KINDS:
+    if target in XA_KINDS + ("xa_native",):
         src = root / f"{target}.dcm"
         data = src.read_bytes()
-        data, detail = _dicom_field(data, rng, XA_FIELDS) if mutation == "field" else _mutate_bytes(data, rng, mutation, _pixel_offset(data))
+        fields = NATIVE_FIELDS if target == "xa_native" else XA_FIELDS
+        data, detail = _dicom_field(data, rng, fields) if mutation == "field" else _mutate_bytes(data, rng, mutation, _pixel_offset(data))
         path = case_dir / src.name
         path.write_bytes(data)
         outcome, why = _classify_dsa(lambda: read_dsa(path), original, lambda: _pydicom_dsa(path))

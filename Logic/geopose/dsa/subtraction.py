@@ -38,6 +38,8 @@ __all__ = ["MaskSubtraction", "read_mask_subtraction", "mask_subtraction_item", 
 #: display scale, and where no change lands.
 DISPLAY_PEAK: Final = 0.75 * 255
 DISPLAY_ZERO: Final = 0.06 * 255
+#: Pixel Intensity Relationship (0028,1040) values: intensity (logged first), its logarithm, ready for display.
+RELATIONSHIPS: Final = ("LIN", "LOG", "DISP")
 #: Stored intensities below this are taken as this before the logarithm (a collimated border stores 0).
 MIN_INTENSITY: Final = 1.0
 _REMEDY: Final = "export the run subtracted from the angiography workstation, or fix the Mask Subtraction Sequence"
@@ -80,8 +82,13 @@ def read_mask_subtraction(ds: pydicom.Dataset, n_frames: int, name: str) -> Mask
     """The subtraction ``ds`` prescribes for its ``n_frames`` frames; None where it prescribes none (no Mask
     Subtraction Sequence, or only items of Mask Operation NONE). The first other item (where several offer
     alternative views) is applied when it is AVG_SUB, and refused by name otherwise."""
-    items = [item for item in ds.get("MaskSubtractionSequence", None) or []
-             if str(item.get("MaskOperation", "")).strip().upper() != "NONE"]
+    try:  # the items' elements are parsed when read: a damaged one raises here, not later
+        items = [item for item in ds.get("MaskSubtractionSequence", None) or []
+                 if [e.value for e in item] and str(item.get("MaskOperation", "")).strip().upper() != "NONE"]
+    except Exception as exc:  # pydicom raises many types for damaged elements
+        raise InputError(f"{name} is a damaged DICOM file: its Mask Subtraction Sequence cannot be read "
+                         f"(pydicom: {type(exc).__name__}: {str(exc)[:120]}); copy the file again from the archive "
+                         "or re-export it") from None
     if not items:
         return None
     item = items[0]
@@ -107,14 +114,18 @@ def read_mask_subtraction(ds: pydicom.Dataset, n_frames: int, name: str) -> Mask
         if not frames or min(frames) < 1 or max(frames) > top:
             raise InputError(f"{name}: {what} {frames[:8]} in its Mask Subtraction Sequence lies outside the run's frames "
                              f"1..{top}: {_REMEDY}")
-    shift = [float(v) for v in item.get("MaskSubPixelShift", None) or (0.0, 0.0)]
+    shift = item.get("MaskSubPixelShift", None)
+    shift = [0.0, 0.0] if shift is None else [float(v) for v in (shift if isinstance(shift, (list, tuple, pydicom.multival.MultiValue)) else [shift])]
     if len(shift) != 2 or not all(np.isfinite(shift)) or max(abs(v) for v in shift) > 64:
         raise InputError(f"{name}: Mask Sub-pixel Shift {shift} in its Mask Subtraction Sequence is not a shift of at most "
                          f"64 pixels (row, column): {_REMEDY}")
     relationship = str(ds.get("PixelIntensityRelationship", "LIN") or "LIN").strip().upper()
-    sign = -1 if int(ds.get("PixelIntensityRelationshipSign", 1) or 1) < 0 else 1
+    if relationship not in RELATIONSHIPS:
+        raise InputError(f"{name} is a native run whose Pixel Intensity Relationship is {relationship!r}, not one of "
+                         f"{', '.join(RELATIONSHIPS)}: the subtraction cannot tell intensity from its logarithm; {_REMEDY}")
+    sign = _ints(ds.get("PixelIntensityRelationshipSign", 1) or 1, name, "Pixel Intensity Relationship Sign")[0]
     return MaskSubtraction(tuple(k - 1 for k in masks), tuple(k - 1 for k in contrast), (shift[0], shift[1]), averaging,
-                           relationship if relationship in ("LIN", "LOG", "DISP") else "LIN", sign)
+                           relationship, -1 if sign < 0 else 1)
 
 
 def mask_subtraction_item(plan: MaskSubtraction) -> pydicom.Dataset:
