@@ -430,6 +430,23 @@ def test_run_from_node_uses_attributes_and_overrides_through_the_readers_checks(
     assert mrml.run_from_node(bare, geo).detector == RUN_DET
 
 
+def test_a_native_run_read_into_slicer_keeps_how_it_was_subtracted(scene, tmp_path):
+    """*Import DSA...* of a native run (a Mask Subtraction Sequence) shows the subtracted frames, and the node says how
+    they were subtracted, so the run made from it for the registration (and its record) says so too."""
+    from geopose.dsa import DSARun, MaskSubtraction, read_dsa, write_dsa_dicom
+
+    intensities = np.round(4000.0 * np.exp(-_run(0.0).frames / 50.0))
+    native = DSARun(intensities, RUN_DET, _run(0.0).angles, 125.0)
+    path = write_dsa_dicom(native, tmp_path / "pa.dcm", mask_subtraction=MaskSubtraction((0,), (1, 2)))
+    seq, _ = mrml.read_dsa_node(scene, path, "DSA PA")
+    assert "AVG_SUB" in seq.GetAttribute("GeoPose.subtraction")
+    run = mrml.run_from_node(seq)
+    assert run.metadata["subtraction"] == read_dsa(path).metadata["subtraction"]
+    np.testing.assert_allclose(run.frames, read_dsa(path).frames, rtol=1e-6)
+    plain, _ = mrml.read_dsa_node(scene, write_dsa_dicom(native, tmp_path / "plain.dcm"), "DSA plain")
+    assert plain.GetAttribute("GeoPose.subtraction") is None and "subtraction" not in mrml.run_from_node(plain).metadata
+
+
 def test_node_roles_and_read_inputs_checks(scene, tmp_path):
     from geopose.dsa import write_dsa_nifti
     from geopose.errors import InputError

@@ -86,6 +86,10 @@ def geometry_overrides(values: Mapping[str, float]) -> dict[str, Any]:
     return out
 
 
+#: Attribute of a DSA sequence node read from a native run: how it was subtracted (``geopose.dsa.subtraction``).
+SUBTRACTION_ATTRIBUTE = "GeoPose.subtraction"
+
+
 def run_from_node(node, overrides: Mapping[str, Any] | None = None) -> DSARun:
     """A :class:`~geopose.dsa.DSARun` from a sequence / multi-frame volume node, its ``GeoPose.*``
     geometry attributes and ``overrides`` (``geopose.dsa`` key names, mm / deg), through the checks the
@@ -105,7 +109,9 @@ def run_from_node(node, overrides: Mapping[str, Any] | None = None) -> DSARun:
         geometry["frame_time_ms"] = frame_time * 1000.0
     geometry.update(overrides or {})
     name = node.GetName()
-    return run_from_geometry(frames_from_node(node), geometry, name=f"DSA node {name!r}", source=f"Slicer node {name}")
+    subtraction = node.GetAttribute(SUBTRACTION_ATTRIBUTE)  # a native run, subtracted when it was read
+    return run_from_geometry(frames_from_node(node), geometry, name=f"DSA node {name!r}", source=f"Slicer node {name}",
+                             metadata={"subtraction": subtraction} if subtraction else None)
 
 
 def _frame_time_s(run: DSARun) -> float | None:
@@ -122,7 +128,11 @@ def read_dsa_node(scene, path, name: str, reference=None, **overrides):
     pose = pose_from_carm_angles(run.angles)
     if reference is not None:
         pose = volume_from_node(reference).centred_to_ras @ pose
-    return dsa_sequence_node(scene, run.frames, run.detector, pose, name, frame_time_s=_frame_time_s(run), angles=run.angles)
+    seq, browser = dsa_sequence_node(scene, run.frames, run.detector, pose, name, frame_time_s=_frame_time_s(run),
+                                     angles=run.angles)
+    if "subtraction" in run.metadata:
+        seq.SetAttribute(SUBTRACTION_ATTRIBUTE, run.metadata["subtraction"])
+    return seq, browser
 
 
 def segmentation_labels(segmentation, reference) -> tuple[Volume | None, dict]:
@@ -303,5 +313,9 @@ def register_nodes(scene, cta, dsa_pa, dsa_lat, segmentation=None, cranium_mask=
     result = run(compute, progress, deliver) if run is not None else compute(progress)
     out = result_nodes(scene, inputs, result, nodes, tick)
     out["result"] = result
-    out["record"] = build_record(result, inputs.runs, inputs={"cta": {"node": name}})
+    record_inputs = {"cta": {"node": name}}
+    for key, node in (("pa", dsa_pa), ("lat", dsa_lat)):
+        record_inputs[f"dsa_{key}"] = {"node": node.GetName()} | (
+            {"subtraction": inputs.runs[key].metadata["subtraction"]} if "subtraction" in inputs.runs[key].metadata else {})
+    out["record"] = build_record(result, inputs.runs, inputs=record_inputs)
     return out
