@@ -39,6 +39,7 @@ from typing import Mapping
 import numpy as np
 
 from ..dsa import DSARun
+from ..dsa.subtraction import unsubtracted_notes
 from ..nets.predictors import ModelSet
 from ..options import RegistrationOptions
 from ..volume import Volume
@@ -92,7 +93,7 @@ def register_case(
     if options.independent_views:
         return register_published(cta, dsa, models=models, options=options, progress=progress, cancel=cancel,
                                   preliminary=preliminary, **masks)
-    monitor, clock, notes, rig = Monitor(progress, cancel), StageClock(), engine_notes(), nominal_poses(dsa)
+    monitor, clock, notes, rig = Monitor(progress, cancel), StageClock(), engine_notes() + unsubtracted_notes(dsa), nominal_poses(dsa)
     with clock("prepare"):
         engine, case = start_case(cta, dsa, options, models, monitor=monitor, **masks)
     renderer, nets, render_px = engine.renderer, engine.models, engine.render_px

@@ -14,6 +14,7 @@ from typing import Mapping
 import numpy as np
 
 from ..dsa import DSARun
+from ..dsa.subtraction import unsubtracted_notes
 from ..nets.predictors import ModelSet
 from ..options import RegistrationOptions
 from ..volume import Volume
@@ -39,7 +40,7 @@ def register_published(
     preliminary: PreliminaryCallback | None = None,
 ) -> CaseRegistration:
     """Register each view of ``dsa`` to ``cta`` on its own (arguments as ``pipeline.register_case``)."""
-    monitor, clock, notes = Monitor(progress, cancel), StageClock(), engine_notes()
+    monitor, clock, notes = Monitor(progress, cancel), StageClock(), engine_notes() + unsubtracted_notes(dsa)
     with clock("prepare"):
         engine, case = start_case(cta, dsa, options, models, cranium_mask=cranium_mask, segmentation=segmentation,
                                   dsa_masks=dsa_masks, monitor=monitor)
