@@ -75,11 +75,14 @@ def seed_range(text: str) -> list[int]:
         raise InputError(f"seed range {text!r}: write FIRST-LAST or one seed, e.g. 5000-5039") from None
 
 
-def phantom_case(seed: int, folder: Path, spacing_mm: float = 1.0, injection: str | None = None) -> BenchCase:
+def phantom_case(seed: int, folder: Path, spacing_mm: float = 1.0, injection: str | None = None,
+                 native_runs: bool = False) -> BenchCase:
     """Phantom ``seed`` written by ``geopose phantom`` into ``folder`` and read back, its runs with
     ``injection`` (default: the subject's own draw; the case is then named after it too); the
-    phantom's own cranium and artery labels are the true masks (scoring and upper bounds)."""
-    write_phantom(seed, folder, spacing_mm=spacing_mm, injection=injection, max_matrix_px=BENCH_MATRIX_PX)
+    phantom's own cranium and artery labels are the true masks (scoring and upper bounds). ``native_runs``: the runs
+    archived native and read subtracted by their Mask Subtraction Sequence, as ``read_dsa`` reads such files."""
+    write_phantom(seed, folder, spacing_mm=spacing_mm, injection=injection, max_matrix_px=BENCH_MATRIX_PX,
+                  native_runs=native_runs)
     cta = load_cta(folder / "cta.nii.gz")
     labels = load_cta(folder / "labels.nii.gz", check_hu=False)
     truth = load_truth(folder / "cta.nii.gz")

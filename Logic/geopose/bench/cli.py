@@ -52,6 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dense-subjects", type=int, default=5, help="held-out phantoms per --dense injection")
     p.add_argument("--mirrored-subjects", type=int, default=0,
                    help="held-out phantoms also registered with their CTA mirrored left-right (the mirror test must fail them)")
+    p.add_argument("--native-runs", action="store_true",
+                   help="write the phantoms' runs archived native (unsubtracted, with the Mask Subtraction Sequence that "
+                   "subtracts them), as many angiography systems store DSA; the registration reads them subtracted")
     p.add_argument("--models", help="model folder with its manifest.json (default: the shipped models)")
     p.add_argument("--allow-unverified-models", action="store_true",
                    help="use a --models folder without manifest.json (its files are not checksum-verified)")
@@ -93,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
         for i, seed in enumerate(seeds):
             long = i < n_long
             tag = f"phantom-{seed}{'' if long else SHORT_CASE_SUFFIX}"
-            case = functools.cache(lambda: phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm))
+            case = functools.cache(lambda: phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm,
+                                                        native_runs=args.native_runs))
             result = _load_or_run(out / "cases" / f"{tag}.json", lambda: evaluate_case(case(), models, settings, long=long))
             cases.append(result)
             if i < args.mirrored_subjects:
@@ -109,7 +113,8 @@ def run(args: argparse.Namespace) -> int:
             for seed in seeds[: args.dense_subjects]:
                 tag = f"phantom-{seed}-{injection}"
                 dense.append(_load_or_run(out / "cases" / f"{tag}.json", lambda: evaluate_case(
-                    phantom_case(seed, Path(tmp) / tag, args.spacing_mm, injection), models, settings, long=False)))
+                    phantom_case(seed, Path(tmp) / tag, args.spacing_mm, injection, args.native_runs), models, settings,
+                    long=False)))
                 print(f"dense {tag} done; elapsed {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
         real = []
         variants = (False, True) if args.real_arteries else (False,)
@@ -126,13 +131,14 @@ def run(args: argparse.Namespace) -> int:
     long_note = f"long native TTO on {min(n_long, len(cases))} subjects" if args.long_iterations > 0 else "no long native TTO"
     header = (
         f"# GeoPose benchmark on {len(cases)} held-out phantom subjects\n\n"
-        f"Seeds {seeds[0]}..{seeds[-1]} (disjoint from the training seeds), {args.spacing_mm:g} mm phantoms, "
+        f"Seeds {seeds[0]}..{seeds[-1]} (disjoint from the training seeds), {args.spacing_mm:g} mm phantoms"
+        f"{' with runs archived native (read subtracted by their Mask Subtraction Sequence)' if args.native_runs else ''}, "
         f"models `{models_dir.name}` ({backend}), device `{device}` ({platform.machine()}, "
         f"{os.cpu_count()} CPUs){ran_on}, geopose {__version__}; "
         f"{long_note}.\n\n"
         f"Reproduce: `geopose bench --subjects {args.subjects} --seed-start {args.seed_start} --long-subjects {n_long} "
         f"--long-iterations {args.long_iterations} --spacing-mm {args.spacing_mm:g} "
-        f"--out {out}{' --headsq ' + args.headsq if args.headsq else ''}{' --ge-head ' + args.ge_head if args.ge_head else ''}"
+        f"{'--native-runs ' if args.native_runs else ''}--out {out}{' --headsq ' + args.headsq if args.headsq else ''}{' --ge-head ' + args.ge_head if args.ge_head else ''}"
         f"{' --real-seeds ' + str(args.real_seeds) if real else ''}"
         f"{' --real-arteries' if args.real_arteries else ''}"
         f"{' --dense ' + ' '.join(args.dense) + f' --dense-subjects {args.dense_subjects}' if args.dense else ''}"
