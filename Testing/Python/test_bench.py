@@ -141,7 +141,8 @@ def test_training_seeds_are_read_from_the_manifest_and_refused(tmp_path, capsys)
 def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     out = tmp_path / "bench"
     code = main(["bench", "--subjects", "1", "--seed-start", "777001", "--spacing-mm", "4", "--iterations", "2",
-                 "--long-iterations", "3", "--device", "cpu", "--tto-px", "48", "--mirrored-subjects", "1", "--out", str(out)])
+                 "--long-iterations", "3", "--device", "cpu", "--tto-px", "48", "--mirrored-subjects", "1", "--native-runs",
+                 "--out", str(out)])
     assert code == 0
     data = json.loads((out / "bench.json").read_text())
     case = data["cases"][0]
@@ -164,6 +165,8 @@ def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     assert (out / "cases" / "phantom-777001-mirrored.json").is_file()
     assert "## The mirror test: the CTA as given and mirrored left-right" in (out / "bench.md").read_text()
     assert "--mirrored-subjects 1" in (out / "bench.md").read_text()
+    # the runs were written native and read subtracted, as the header and the command to reproduce say
+    assert "with runs archived native" in (out / "bench.md").read_text() and "--native-runs --out" in (out / "bench.md").read_text()
 
 
 def test_dense_opacification_cases_get_their_own_section_and_targets():
