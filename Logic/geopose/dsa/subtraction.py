@@ -78,10 +78,21 @@ class MaskSubtraction:
                 "values")
 
 
+def _listed(value) -> list:
+    """A DICOM value as a list: a multi-valued one as its values, a single one as one."""
+    return list(value) if isinstance(value, (list, tuple, pydicom.multival.MultiValue)) else [value]
+
+
+def _parsed(item: pydicom.Dataset) -> pydicom.Dataset:
+    """``item`` with every element parsed now (pydicom parses a sequence item's elements when first read)."""
+    for element in item:
+        _ = element.value
+    return item
+
+
 def _ints(value, name: str, what: str) -> list[int]:
-    items = list(value) if isinstance(value, (list, tuple, pydicom.multival.MultiValue)) else [value]
     try:
-        return [int(v) for v in items]
+        return [int(v) for v in _listed(value)]
     except (TypeError, ValueError):
         raise InputError(f"{name}: {what} in its Mask Subtraction Sequence is not a list of frame numbers "
                          f"({str(value)[:60]!r}): {_REMEDY}") from None
@@ -92,8 +103,8 @@ def read_mask_subtraction(ds: pydicom.Dataset, n_frames: int, name: str) -> Mask
     Subtraction Sequence, or only items of Mask Operation NONE). The first other item (where several offer
     alternative views) is applied when it is AVG_SUB, and refused by name otherwise."""
     try:  # the items' elements are parsed when read: a damaged one raises here, not later
-        items = [item for item in ds.get("MaskSubtractionSequence", None) or []
-                 if [e.value for e in item] and str(item.get("MaskOperation", "")).strip().upper() != "NONE"]
+        items = [item for item in map(_parsed, ds.get("MaskSubtractionSequence", None) or [])
+                 if str(item.get("MaskOperation", "")).strip().upper() != "NONE"]
     except Exception as exc:  # pydicom raises many types for damaged elements
         raise InputError(f"{name} is a damaged DICOM file: its Mask Subtraction Sequence cannot be read "
                          f"(pydicom: {type(exc).__name__}: {str(exc)[:120]}); copy the file again from the archive "
@@ -123,8 +134,7 @@ def read_mask_subtraction(ds: pydicom.Dataset, n_frames: int, name: str) -> Mask
         if not frames or min(frames) < 1 or max(frames) > top:
             raise InputError(f"{name}: {what} {frames[:8]} in its Mask Subtraction Sequence lies outside the run's frames "
                              f"1..{top}: {_REMEDY}")
-    shift = item.get("MaskSubPixelShift", None)
-    shift = [0.0, 0.0] if shift is None else [float(v) for v in (shift if isinstance(shift, (list, tuple, pydicom.multival.MultiValue)) else [shift])]
+    shift = [float(v) for v in _listed(item.get("MaskSubPixelShift", None) or [0.0, 0.0])]
     if len(shift) != 2 or not all(np.isfinite(shift)) or max(abs(v) for v in shift) > 64:
         raise InputError(f"{name}: Mask Sub-pixel Shift {shift} in its Mask Subtraction Sequence is not a shift of at most "
                          f"64 pixels (row, column): {_REMEDY}")
