@@ -313,9 +313,6 @@ def register_nodes(scene, cta, dsa_pa, dsa_lat, segmentation=None, cranium_mask=
     result = run(compute, progress, deliver) if run is not None else compute(progress)
     out = result_nodes(scene, inputs, result, nodes, tick)
     out["result"] = result
-    record_inputs = {"cta": {"node": name}}
-    for key, node in (("pa", dsa_pa), ("lat", dsa_lat)):
-        record_inputs[f"dsa_{key}"] = {"node": node.GetName()} | (
-            {"subtraction": inputs.runs[key].metadata["subtraction"]} if "subtraction" in inputs.runs[key].metadata else {})
-    out["record"] = build_record(result, inputs.runs, inputs=record_inputs)
+    out["record"] = build_record(result, inputs.runs, inputs={"cta": {"node": name}, "dsa_pa": {"node": dsa_pa.GetName()},
+                                                              "dsa_lat": {"node": dsa_lat.GetName()}})
     return out

@@ -193,8 +193,6 @@ def register_and_write(
         inputs = {"cta": {"path": str(cta_path), "sha256": cta.metadata.get("sha256")}, "consistency": consistency}
         for key, path in (("pa", dsa_pa), ("lat", dsa_lat)):
             inputs[f"dsa_{key}"] = {"path": str(path), "sha256": runs[key].metadata.get("sha256")}
-            if "subtraction" in runs[key].metadata:  # a native run, subtracted by its own header
-                inputs[f"dsa_{key}"]["subtraction"] = runs[key].metadata["subtraction"]
         for name, path in (("cranium_mask", cranium_mask), ("segmentation", segmentation)):
             if path:
                 inputs[name] = {"path": str(path), "sha256": file_sha256([Path(path)])}

@@ -20,6 +20,8 @@ from .continuation import CONTINUE_TURN_DEG, CONTINUED_START
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 17: ``inputs.dsa_pa`` / ``inputs.dsa_lat`` hold ``subtraction`` where the run was archived native and subtracted by
+#: its own Mask Subtraction Sequence (``dsa/subtraction.py``); the Slicer record names each run's node.
 #: 16: ``registration.mirror`` adds ``short_loss`` and ``equal_effort_margin`` (the CTA as given through the mirrored
 #: hypothesis's short fit from the same start; null where the result's margin already failed it),
 #: ``equal_effort_fail_margin`` and ``sides_alike`` (the note was given).
@@ -61,7 +63,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 16
+SCHEMA_VERSION = 17
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -188,6 +190,15 @@ def _vessel_selection(case: CaseRegistration) -> dict | None:
     return selection.summary() | {"runs": [k for k, r in case.registration.tto_runs.items() if r.vessel_selection is not None]}
 
 
+def _with_subtractions(inputs: dict[str, Any], runs: dict[str, DSARun]) -> dict[str, Any]:
+    """``inputs`` with, for each run read native and subtracted by its own header, how (``dsa_<key>.subtraction``)."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in inputs.items()}
+    for key, run in runs.items():
+        if "subtraction" in run.metadata:
+            out.setdefault(f"dsa_{key}", {})["subtraction"] = run.metadata["subtraction"]
+    return out
+
+
 def build_record(
     case: CaseRegistration,
     runs: dict[str, DSARun],
@@ -204,7 +215,7 @@ def build_record(
         "frames_doc": "pose_centred: camera-to-world 4x4 in the centred native CTA frame (RAS axes, origin at the "
         "voxel-grid centre, mm); pose_ras: camera-to-RAS 4x4 in the CTA's patient frame; camera: source at origin, "
         "detector at z = SDD, AP reorientation applied (docs/conventions.md 1-2)",
-        "inputs": inputs or {},
+        "inputs": _with_subtractions(inputs or {}, runs),
         "environment": library_versions(),
         "options": case.options.as_dict(),
         "engine": case.engine,
