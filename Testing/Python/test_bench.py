@@ -140,9 +140,9 @@ def test_training_seeds_are_read_from_the_manifest_and_refused(tmp_path, capsys)
 
 def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     out = tmp_path / "bench"
-    code = main(["bench", "--subjects", "1", "--seed-start", "777001", "--spacing-mm", "4", "--iterations", "2",
+    code = main(["bench", "--subjects", "2", "--seed-start", "777001", "--spacing-mm", "4", "--iterations", "2",
                  "--long-iterations", "3", "--device", "cpu", "--tto-px", "48", "--mirrored-subjects", "1", "--native-runs",
-                 "--out", str(out)])
+                 "--crossed-subjects", "1", "--out", str(out)])
     assert code == 0
     data = json.loads((out / "bench.json").read_text())
     case = data["cases"][0]
@@ -165,6 +165,12 @@ def test_tiny_bench_run_writes_tables_and_figure(tmp_path):
     assert (out / "cases" / "phantom-777001-mirrored.json").is_file()
     assert "## The mirror test: the CTA as given and mirrored left-right" in (out / "bench.md").read_text()
     assert "--mirrored-subjects 1" in (out / "bench.md").read_text()
+    # the first subject's CTA registered with the second subject's runs (a wrong pairing), and its section
+    (crossed,) = data["crossed"]
+    assert crossed["case"] == "phantom-777001-cta+phantom-777002-runs" and set(crossed["quality"]) == {"pa", "lat"}
+    assert (out / "cases" / "phantom-777001-cta+phantom-777002-runs.json").is_file()
+    assert "## A wrong pairing: one subject's CTA with the next subject's runs" in (out / "bench.md").read_text()
+    assert "--crossed-subjects 1" in (out / "bench.md").read_text()
     # the runs were written native and read subtracted, as the header and the command to reproduce say
     assert "with runs archived native" in (out / "bench.md").read_text() and "--native-runs --out" in (out / "bench.md").read_text()
 
@@ -201,3 +207,28 @@ def test_the_mirror_test_is_reported_on_correct_and_mirrored_ctas():
     assert "Flags of the mirrored CTAs' views: ok 1, doubtful 1, failed 2." in text
     assert "Correct CTAs not passed: phantom-5001 +0.010 / - (sides alike); phantom-5002 -0.100 / - (failed); phantom-5003 (not run)." in text
     assert "Mirrored CTAs: phantom-5000-mirrored -0.200 / - (failed); phantom-5001-mirrored +0.080 / +0.030 (passed)." in text
+
+
+def test_wrong_pairings_are_reported_against_the_correct_ones():
+    """Cases counted by their worst view, both targets, and the gains listed."""
+    from geopose.bench.report import crossed_markdown
+
+    def pairing(gain):
+        return {"gain": gain, "verdict": "failed" if gain > 1.2 else "doubtful" if gain > 1.16 else "ok",
+                "loose": gain > 1.2}
+
+    correct = [_case(f"phantom-{s}", {}) | {"pairing": pairing(g)} for s, g in ((5000, 1.05), (5001, 1.24), (5002, 1.10))]
+    crossed = [_case("phantom-5000-cta+phantom-5001-runs", {}, quality=("failed", "failed")) | {"pairing": pairing(1.30)},
+               _case("phantom-5001-cta+phantom-5002-runs", {}, quality=("ok", "doubtful")) | {"pairing": pairing(1.18)}]
+    text = "\n".join(crossed_markdown(correct, crossed))
+    assert "Cases by their worst view's flag: ok 0, doubtful 1, failed 1; views: ok 1, doubtful 1, failed 2." in text
+    assert "| a wrong pairing comes out failed (both views) | 1 of 2 | NO |" in text
+    assert "| no correct pairing failed by the pairing test | 1 | NO |" in text
+    assert "Wrong pairings: phantom-5000-cta+phantom-5001-runs x1.300 (failed); phantom-5001-cta+phantom-5002-runs x1.180 (doubtful)." in text
+    assert "the highest five: phantom-5001 x1.240 (ok); phantom-5002 x1.100 (ok); phantom-5000 x1.050 (ok)." in text
+
+
+def test_a_wrong_pairing_needs_a_next_subject(tmp_path, capsys):
+    code = main(["bench", "--subjects", "2", "--crossed-subjects", "2", "--out", str(tmp_path / "b")])
+    assert code == 2 and "--crossed-subjects must lie between 0 and --subjects - 1 (1)" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()  # refused before any work

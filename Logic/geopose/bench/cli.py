@@ -23,8 +23,8 @@ from ..register.engine import resolve_engine
 from ..resources import default_models_dir
 from .cases import ARTERIES_SUFFIX, ge_head_case, headsq_case, phantom_case, training_seeds
 from .report import convergence_figure, markdown, summarise
-from .run import (DRIFT_ROW, INSTANT_ROW, LEARNED_ROW, MIRRORED_SUFFIX, NATIVE_TTO_ROW, BenchSettings, evaluate_case,
-                  evaluate_mirrored, row_names)
+from .run import (DRIFT_ROW, INSTANT_ROW, LEARNED_ROW, MIRRORED_SUFFIX, NATIVE_TTO_ROW, BenchSettings, crossed_name,
+                  evaluate_case, evaluate_crossed, evaluate_mirrored, row_names)
 
 #: First held-out phantom seed (training populations use small seeds; checked at run time).
 DEFAULT_SEED_START = 5000
@@ -52,6 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dense-subjects", type=int, default=5, help="held-out phantoms per --dense injection")
     p.add_argument("--mirrored-subjects", type=int, default=0,
                    help="held-out phantoms also registered with their CTA mirrored left-right (the mirror test must fail them)")
+    p.add_argument("--crossed-subjects", type=int, default=0,
+                   help="wrong pairings: the CTAs of this many held-out phantoms each registered with the next subject's "
+                        "runs (the registration must fail them)")
     p.add_argument("--native-runs", action="store_true",
                    help="write the phantoms' runs archived native (unsubtracted, with the Mask Subtraction Sequence that "
                    "subtracts them), as many angiography systems store DSA; the registration reads them subtracted")
@@ -75,6 +78,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--subjects must be at least 1, got {args.subjects}")
     if not 0 <= args.mirrored_subjects <= args.subjects:
         raise InputError(f"--mirrored-subjects must lie between 0 and --subjects ({args.subjects}), got {args.mirrored_subjects}")
+    if not 0 <= args.crossed_subjects < args.subjects:
+        raise InputError(f"--crossed-subjects must lie between 0 and --subjects - 1 ({args.subjects - 1}): each CTA is "
+                         f"paired with the next subject's runs; got {args.crossed_subjects}")
     out = Path(args.out)
     (out / "cases").mkdir(parents=True, exist_ok=True)
     models_dir = Path(args.models) if args.models else default_models_dir()
@@ -91,18 +97,25 @@ def run(args: argparse.Namespace) -> int:
     n_long = args.subjects if args.long_subjects is None else args.long_subjects
     cases: list[dict] = []
     mirrored: list[dict] = []
+    crossed: list[dict] = []
+    previous = None
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for i, seed in enumerate(seeds):
             long = i < n_long
             tag = f"phantom-{seed}{'' if long else SHORT_CASE_SUFFIX}"
-            case = functools.cache(lambda: phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm,
-                                                        native_runs=args.native_runs))
+            case = functools.cache(lambda seed=seed: phantom_case(seed, Path(tmp) / str(seed), args.spacing_mm,
+                                                                  native_runs=args.native_runs))
             result = _load_or_run(out / "cases" / f"{tag}.json", lambda: evaluate_case(case(), models, settings, long=long))
             cases.append(result)
             if i < args.mirrored_subjects:
                 mirrored.append(_load_or_run(out / "cases" / f"phantom-{seed}{MIRRORED_SUFFIX}.json",
                                              lambda: evaluate_mirrored(case(), models, settings)))
+            if 0 < i <= args.crossed_subjects:
+                name = crossed_name(f"phantom-{seeds[i - 1]}", f"phantom-{seed}")
+                crossed.append(_load_or_run(out / "cases" / f"{name}.json",
+                                            lambda: evaluate_crossed(previous(), case(), models, settings)))
+            previous = case
             elapsed = time.perf_counter() - t_start
             row = LEARNED_ROW.format(n=n) if n > 0 else INSTANT_ROW
             mpcd = [result["rows"][row][v].get("mpcd_mm") for v in ("pa", "lat")]
@@ -142,11 +155,13 @@ def run(args: argparse.Namespace) -> int:
         f"{' --real-seeds ' + str(args.real_seeds) if real else ''}"
         f"{' --real-arteries' if args.real_arteries else ''}"
         f"{' --dense ' + ' '.join(args.dense) + f' --dense-subjects {args.dense_subjects}' if args.dense else ''}"
-        f"{f' --mirrored-subjects {args.mirrored_subjects}' if mirrored else ''}`"
+        f"{f' --mirrored-subjects {args.mirrored_subjects}' if mirrored else ''}"
+        f"{f' --crossed-subjects {args.crossed_subjects}' if crossed else ''}`"
     )
-    (out / "bench.md").write_text(markdown(summary, header, real, n, dense, mirrored))
+    (out / "bench.md").write_text(markdown(summary, header, real, n, dense, mirrored, crossed))
     (out / "bench.json").write_text(json.dumps(_rounded({"summary": summary, "cases": cases, "real_heads": real,
-                                                         "dense": dense, "mirrored": mirrored}), separators=(",", ":")))
+                                                         "dense": dense, "mirrored": mirrored, "crossed": crossed}),
+                                               separators=(",", ":")))
     curve_rows = [r for r in row_names(settings) if r in (LEARNED_ROW.format(n=n), NATIVE_TTO_ROW.format(n=n), DRIFT_ROW.format(n=n))
                   or r.startswith("DICOM angles + ") and r != NATIVE_TTO_ROW.format(n=n)]
     convergence_figure(cases, curve_rows, out / "tto_convergence.png")

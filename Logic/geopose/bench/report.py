@@ -105,7 +105,8 @@ def summarise(cases: list[dict], iterations: int = TTOSchedule.iterations) -> di
                "refine_starts": {s_: refine_starts.count(s_) for s_ in dict.fromkeys(refine_starts) if s_},
                "quality": {f: flags.count(f) for f in FLAGS},
                "flag_confusion": flag_confusion(cases, iterations),
-               "mirror_tests": [{"case": c["case"], "mirror": c.get("mirror")} for c in cases]}
+               "case_tests": [{"case": c["case"], "mirror": c.get("mirror"), "pairing": c.get("pairing"),
+                               "quality": c.get("quality", {})} for c in cases]}
     summary["targets"] = _targets(summary, iterations)
     return summary
 
@@ -181,10 +182,12 @@ def _cell(s: dict, digits: int) -> str:
 
 
 def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int = TTOSchedule.iterations,
-             dense: list[dict] | None = None, mirrored: list[dict] | None = None) -> str:
+             dense: list[dict] | None = None, mirrored: list[dict] | None = None,
+             crossed: list[dict] | None = None) -> str:
     """The benchmark as Markdown: accuracy table, pose-error parts, view accuracy, targets,
     runtimes, the real-anatomy rows (``real``: cases of real head CTs with simulated runs), the
-    densely opacified phantoms (``dense``) and the mirror test on the subjects and their CTAs mirrored (``mirrored``)."""
+    densely opacified phantoms (``dense``), the mirror test on the subjects and their CTAs mirrored (``mirrored``) and
+    the wrong pairings (``crossed``: one subject's CTA with the next one's runs)."""
     cols = [f"{label} {v.upper()}" for label, _, _ in COLUMNS for v in (*VIEWS, "avg")]
     lines = [header, "", "## Accuracy (mean (sd) over subjects; avg = PA and LAT averaged within each subject)", ""]
     lines += ["| row | n | " + " | ".join(cols) + " | rot. err. (deg) | transl. err. (mm) | success |"]
@@ -233,7 +236,9 @@ def markdown(summary: dict, header: str, real: list[dict] | None = None, n: int 
     if dense:
         lines += dense_markdown(dense, n)
     if mirrored:
-        lines += mirrored_markdown(summary["mirror_tests"], mirrored)
+        lines += mirrored_markdown(summary["case_tests"], mirrored)
+    if crossed:
+        lines += crossed_markdown(summary["case_tests"], crossed)
     return "\n".join(lines) + "\n"
 
 
@@ -267,7 +272,7 @@ def mirror_outcomes(cases: list[dict]) -> dict[str, int]:
 
 def mirrored_markdown(as_given_cases: list[dict], mirrored: list[dict]) -> list[str]:
     """The mirror test on the subjects' CTAs as given (``as_given_cases``: the benchmark's cases, or their
-    ``summary["mirror_tests"]``) and mirrored left-right (``mirrored``: ``run.evaluate_mirrored`` cases): outcomes,
+    ``summary["case_tests"]``) and mirrored left-right (``mirrored``: ``run.evaluate_mirrored`` cases): outcomes,
     flags, targets, margins."""
     as_given, counts = mirror_outcomes(as_given_cases), mirror_outcomes(mirrored)
     flags = [f for c in mirrored for f in c["quality"].values()]
@@ -289,6 +294,42 @@ def mirrored_markdown(as_given_cases: list[dict], mirrored: list[dict]) -> list[
               "the runs better; \"-\": not run, the first already failed the result). Correct CTAs not passed: "
               + ("; ".join(_margins(c) for c in as_given_cases if mirror_outcome(c) != "passed") or "none")
               + ". Mirrored CTAs: " + "; ".join(_margins(c) for c in mirrored if c.get("mirror")) + "."]
+    return lines + [""]
+
+
+def case_flag(case: dict) -> str:
+    """A case's worst view flag (failed > doubtful > ok)."""
+    flags = list(case["quality"].values())
+    return next(f for f in reversed(FLAGS) if f in flags) if flags else "-"
+
+
+def _gain(case: dict) -> str:
+    """``name gain (flag)`` of one case's pairing test (``register/pairing.py``)."""
+    test = case.get("pairing")
+    gain = "not run" if test is None or test.get("gain") is None else f"x{test['gain']:.3f}"
+    return f"{case['case']} {gain} ({case_flag(case)})"
+
+
+def crossed_markdown(correct_cases: list[dict], crossed: list[dict]) -> list[str]:
+    """The wrong pairings (``crossed``: ``run.evaluate_crossed`` cases) against the subjects registered with their own
+    CTA (``correct_cases``: the benchmark's cases or ``summary["case_tests"]``): flags, the pairing test, targets."""
+    worst = [case_flag(c) for c in crossed]
+    loose = [c for c in correct_cases if (c.get("pairing") or {}).get("loose")]
+    flags = [f for c in crossed for f in c["quality"].values()]
+    lines = ["", "## A wrong pairing: one subject's CTA with the next subject's runs", "",
+             f"{len(crossed)} subjects' CTAs were each registered with the next subject's two runs, on the user's path (as "
+             "a user who picked another patient's CTA would: anonymised runs, or a CTA without identifiers, pass the "
+             "identifier check). The pairing test (`register/pairing.py`) fails a result whose vessels fit the runs' only "
+             "loosely. Cases by their worst view's flag: " + ", ".join(f"{f} {worst.count(f)}" for f in FLAGS)
+             + "; views: " + ", ".join(f"{f} {flags.count(f)}" for f in FLAGS) + ".", "",
+             "| target | measured | met |", "|---|---:|:---:|",
+             f"| a wrong pairing comes out failed (both views) | {sum(set(c['quality'].values()) == {'failed'} for c in crossed)} "
+             f"of {len(crossed)} | {'yes' if all(set(c['quality'].values()) == {'failed'} for c in crossed) else 'NO'} |",
+             f"| no correct pairing failed by the pairing test | {len(loose)} | {'yes' if not loose else 'NO'} |",
+             "", "Blur gains (the vessel NCC with both images blurred over the NCC as registered, the views' mean; above "
+             "the bar the result fails). Wrong pairings: " + "; ".join(_gain(c) for c in crossed) + ". Correct pairings, "
+             "the highest five: " + "; ".join(_gain(c) for c in sorted(correct_cases, key=lambda c: -((c.get("pairing") or {})
+                                                                                                  .get("gain") or 0))[:5]) + "."]
     return lines + [""]
 
 

@@ -43,7 +43,8 @@ from ..register.tto import TTOSchedule, test_time_optimise, tto_views
 from ..render.renderer import Renderer
 from .cases import BenchCase, flipped_left_right
 
-__all__ = ["BenchSettings", "row_names", "evaluate_case", "evaluate_mirrored", "MIRRORED_SUFFIX", "LEARNED_ROW",
+__all__ = ["BenchSettings", "row_names", "evaluate_case", "evaluate_mirrored", "evaluate_crossed", "MIRRORED_SUFFIX",
+           "crossed_name", "LEARNED_ROW",
            "NATIVE_TTO_ROW", "DRIFT_ROW", "INSTANT_ROW",
            "SEARCH_ROW", "UPPER_BOUND_ROW", "UPPER_BOUND_SEARCH_ROW"]
 
@@ -173,7 +174,19 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
             "masks": joint.labels_source,
             "quality": {k: joint.views[k].quality.flag for k in VIEW_KEYS},
             "quality_reasons": {k: list(joint.views[k].quality.reasons) for k in VIEW_KEYS},
-            "mirror": None if registration.mirror is None else registration.mirror.as_dict()}
+            "mirror": None if registration.mirror is None else registration.mirror.as_dict(),
+            "pairing": None if registration.pairing is None else registration.pairing.as_dict()}
+
+
+def _tests(reg: CaseRegistration, name: str) -> dict:
+    """What a case registered outside the benchmark's rows reports: the mirror and pairing tests, flags, reasons."""
+    registration = reg.registration
+    return {"case": name, "notes": reg.notes, "runtimes_s": {"total": reg.runtimes_s["total"]},
+            "device": reg.engine["device"],
+            "mirror": None if registration.mirror is None else registration.mirror.as_dict(),
+            "pairing": None if registration.pairing is None else registration.pairing.as_dict(),
+            "quality": {k: reg.views[k].quality.flag for k in VIEW_KEYS},
+            "quality_reasons": {k: list(reg.views[k].quality.reasons) for k in VIEW_KEYS}}
 
 
 def evaluate_mirrored(case: BenchCase, models: ModelSet, settings: BenchSettings) -> dict:
@@ -182,8 +195,17 @@ def evaluate_mirrored(case: BenchCase, models: ModelSet, settings: BenchSettings
     failed; the mirror test's numbers (``register/mirror.py``), the flags and the reasons, per view."""
     reg = register_case(flipped_left_right(case.cta), case.runs, models=models,
                         options=settings.options.replace(independent_views=False))
-    mirror = reg.registration.mirror
-    return {"case": case.name + MIRRORED_SUFFIX, "notes": reg.notes, "runtimes_s": {"total": reg.runtimes_s["total"]},
-            "device": reg.engine["device"], "mirror": None if mirror is None else mirror.as_dict(),
-            "quality": {k: reg.views[k].quality.flag for k in VIEW_KEYS},
-            "quality_reasons": {k: list(reg.views[k].quality.reasons) for k in VIEW_KEYS}}
+    return _tests(reg, case.name + MIRRORED_SUFFIX)
+
+
+def crossed_name(cta_case: str, runs_case: str) -> str:
+    """The name of a wrong pairing: the CTA of the case named ``cta_case`` with the runs of ``runs_case``."""
+    return f"{cta_case}-cta+{runs_case}-runs"
+
+
+def evaluate_crossed(cta_case: BenchCase, runs_case: BenchCase, models: ModelSet, settings: BenchSettings) -> dict:
+    """A wrong pairing: the default registration of ``cta_case``'s CTA with ``runs_case``'s two runs, as a user who
+    picked another patient's CTA (anonymised, or a NIfTI CTA without identifiers) would run it, masks computed. It must
+    come out failed; the mirror and pairing tests' numbers, the flags and the reasons, per view."""
+    reg = register_case(cta_case.cta, runs_case.runs, models=models, options=settings.options.replace(independent_views=False))
+    return _tests(reg, crossed_name(cta_case.name, runs_case.name))

@@ -26,13 +26,20 @@ VIEW_KEYS = ("pa", "lat")
 
 @dataclass(frozen=True)
 class PreparedCase:
-    """The CTA's :class:`RenderVolume`, where each mask came from (``labels_source``), and each
-    view's preprocessed DSA (``views``, keyed ``pa`` / ``lat``)."""
+    """The CTA's :class:`RenderVolume`, where each mask came from (``labels_source``; a computed vessel mask made with
+    the artery classifier adds ``artery_classifier_sha256``), and each view's preprocessed DSA (``views``, keyed ``pa`` /
+    ``lat``)."""
 
     cta: Volume
     volume: RenderVolume
     labels_source: dict[str, str]
     views: dict[str, PreparedDSA]
+
+    @property
+    def arteries_classified(self) -> bool:
+        """Whether the vessel mask was computed from the CTA and kept what the artery classifier calls artery
+        (``cta/masks.py``; a CTA no coarser than ``ARTERY_CLASSIFIER_MAX_MM``), which makes it mostly artery."""
+        return self.vessel_evidence and "artery_classifier_sha256" in self.labels_source
 
     @property
     def vessel_evidence(self) -> bool:
@@ -105,6 +112,8 @@ def prepare_case(
     def computed_vessels() -> Volume:
         mask = vessel_mask_from_cta(grid)
         source["vessels"] = f"computed from the CTA (no segmentation given): {mask.metadata['method']}"
+        if "artery_classifier_sha256" in mask.metadata:
+            source["artery_classifier_sha256"] = mask.metadata["artery_classifier_sha256"]
         return mask
 
     monitor.step("prepare", 0.0, "CTA")

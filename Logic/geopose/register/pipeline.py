@@ -23,7 +23,7 @@ its own module:
    trusted (on a given segmentation its vessel NCC per view, ``evidence.view_evidence``, is read for
    that), and without vessel evidence the move from the DICOM angles is bounded;
 8. ``mirror.mirror_test``: the result weighed against the CTA mirrored left-right, optimised from the
-   networks' estimate;
+   networks' estimate; ``pairing.pairing_test``: whether the CTA's vessels fit the runs' as tightly as one patient's do;
 9. ``scoring.score_views``: final mNCC, silhouette Dice and quality flag per view.
 
 ``independent_views=True`` runs the published pipeline instead (``published.py``). Poses between
@@ -50,6 +50,8 @@ from .engine import NO_TORCH_TTO_NOTE, StageClock, engine_notes, start_case
 from .evidence import view_evidence
 from .init import biplane_init
 from .mirror import mirror_test
+from .opacified import selection_judge
+from .pairing import pairing_test
 from .progress import CancelCheck, Monitor, PreliminaryCallback, ProgressCallback, hand_over_estimate
 from .published import register_published
 from .refine import refine_from_starts
@@ -139,18 +141,23 @@ def register_case(
                            computed_vessels=segmentation is None,
                            tto_vessel_ncc=None if measured is None else {key: ev.vessel_ncc for key, (_, ev) in measured.items()})
     notes += [kept.kept_learned] if kept.kept_learned else []
-    mirror = None
+    mirror, pairing = None, None
     if vessel_evidence and tournament is not None:
         with clock("mirror", engine):
             mirror = mirror_test(renderer, case.views, tournament, X_learned, rig,
                                  options.objective, engine.device, monitor)
         notes += [mirror.note] if mirror.note else []
+        if case.arteries_classified:  # validated on that mask alone (pairing.py)
+            with clock("pairing", engine):
+                pairing = pairing_test(selection_judge(renderer, tournament.vessel_selection), tournament.result.poses,
+                                       case.views)
     registration = Registration(
         "biplane-rigid", rig, patient_pose=kept.patient_pose, starts=dict(starts.objectives), chosen_start=kept.start,
         tto_runs=dict(tournament.runs) if tournament else {}, tto_objective=dict(tournament.objectives) if tournament else {},
         vessel_selection=tournament.vessel_selection if tournament else None,
         checks={"view_disagreement_mm": init.view_disagreement_mm}, refine_start=refined.start, refine_starts=refined.mncc,
-        search=search, vessel_evidence=vessel_evidence, bound=kept.bound, mirror=mirror, kept_learned=kept.kept_learned,
+        search=search, vessel_evidence=vessel_evidence, bound=kept.bound, mirror=mirror, pairing=pairing,
+        kept_learned=kept.kept_learned,
         vessel_images=vessel_images)
     with clock("score", engine):
         outcomes = score_views(renderer, case, registration, inits=init.views, init_poses=view_poses(init.patient_pose, rig),

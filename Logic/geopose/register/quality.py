@@ -16,6 +16,9 @@ Rule (thresholds named below; set on validation phantom runs, provisional for re
   (``mirror.py``), or when the vessel NCC at the final pose is below ``VESSEL_NCC_FAILED`` (the CTA's vessels are
   not where the runs show them: a wrong pose, or runs of another patient);
   ``doubtful`` when it is below ``VESSEL_NCC_OK``;
+* ``failed`` also when the CTA's vessels fit the runs' only loosely (``pairing.py``: the vessel NCC gains more than
+  ``pairing.GAIN_FAILED`` from a blur): another patient's CTA, or a fit the registration missed; ``doubtful`` when
+  it gains more than ``pairing.GAIN_OK``;
 * ``ok`` otherwise.
 """
 
@@ -27,6 +30,7 @@ from typing import TYPE_CHECKING, Final
 if TYPE_CHECKING:
     from .evidence import ViewEvidence
     from .mirror import MirrorTest
+    from .pairing import PairingTest
 
 MNCC_FAILED: Final = 0.15
 MNCC_OK: Final = 0.35
@@ -58,13 +62,17 @@ class Quality:
 
 def assess(
     mncc: float, silhouette_dice: float, stage_rotation_deg: float, stage_translation_mm: float, *,
-    evidence: "ViewEvidence | None" = None, mirror: "MirrorTest | None" = None, doubts: tuple[str, ...] = (),
+    evidence: "ViewEvidence | None" = None, mirror: "MirrorTest | None" = None, pairing: "PairingTest | None" = None,
+    doubts: tuple[str, ...] = (),
 ) -> Quality:
     """Apply the rule above to one view's numbers (``evidence``: the objective's terms at the final pose;
-    ``mirror``: the case's mirrored-CTA test; ``doubts``: failed consistency checks, worded)."""
+    ``mirror``: the case's mirrored-CTA test; ``pairing``: the case's fit-precision test; ``doubts``: failed
+    consistency checks, worded)."""
     failed, doubtful = [], list(doubts)
     if mirror is not None and mirror.mirrored:
         failed.append(mirror.reason)
+    if pairing is not None and pairing.verdict != "ok":
+        (failed if pairing.loose else doubtful).append(pairing.reason)
     vessel_ncc = None if evidence is None else evidence.vessel_ncc
     if vessel_ncc is not None and vessel_ncc < VESSEL_NCC_FAILED:
         failed.append(f"vessel NCC {vessel_ncc:.2f} < {VESSEL_NCC_FAILED}: the CTA's vessels are not where the run shows "

@@ -20,6 +20,8 @@ from .continuation import CONTINUE_TURN_DEG, CONTINUED_START
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 18: ``registration.pairing``: per view the vessel NCC at the TTO's result and with both images blurred, their gain
+#: and whether the fit is too loose for one patient's CTA (``register/pairing.py``; null when not run).
 #: 17: ``inputs.dsa_pa`` / ``inputs.dsa_lat`` hold ``subtraction`` where the run was archived native and subtracted by
 #: its own Mask Subtraction Sequence (``dsa/subtraction.py``); the Slicer record names each run's node.
 #: 16: ``registration.mirror`` adds ``short_loss`` and ``equal_effort_margin`` (the CTA as given through the mirrored
@@ -63,7 +65,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 17
+SCHEMA_VERSION = 18
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
@@ -250,6 +252,7 @@ def build_record(
             "vessel_evidence": case.registration.vessel_evidence,
             "bound": None if case.registration.bound is None else case.registration.bound.as_dict(),
             "mirror": None if case.registration.mirror is None else case.registration.mirror.as_dict(),
+            "pairing": None if case.registration.pairing is None else case.registration.pairing.as_dict(),
             "kept_learned": case.registration.kept_learned or None,
             "refine_start": case.registration.refine_start,
             "refine_start_doc": "biplane-rigid: greedy Refine ran from every combination of a rotation and an isocentre "

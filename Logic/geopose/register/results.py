@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from .bound import BoundedMove
     from .evidence import ViewEvidence
     from .mirror import MirrorTest
+    from .pairing import PairingTest
     from .opacified import VesselSelection
     from .tto import TTOResult
     from .vessel_image import VesselImageChoice
@@ -131,7 +132,8 @@ class Registration:
     final mean mNCC (``refine_starts``); the similarity search after greedy Refine (``search``;
     None: it did not run); ``vessel_evidence``: whether the CTA's vessel mask held any vessel; ``bound``: without
     vessel evidence, the bounded move from the DICOM angles (``bound.py``); ``mirror``: the mirrored-CTA test
-    (``mirror.py``; None: not run); ``kept_learned``: why the networks' estimate was kept over the TTO's result
+    (``mirror.py``; None: not run); ``pairing``: the precision of the vessel fit at the TTO's result, which a wrong
+patient's CTA lacks (``pairing.py``; None: not run); ``kept_learned``: why the networks' estimate was kept over the TTO's result
     ("": it was not; ``trust.py``); ``vessel_images``: per view, which of the run's vessel images the objective
     compared (``vessel_image.py``; empty: the bolus-weighted ones, not chosen)."""
 
@@ -150,6 +152,7 @@ class Registration:
     vessel_evidence: bool = True
     bound: "BoundedMove | None" = None
     mirror: "MirrorTest | None" = None
+    pairing: "PairingTest | None" = None
     kept_learned: str = ""
     vessel_images: dict[str, "VesselImageChoice"] = field(default_factory=dict)
 

@@ -73,6 +73,7 @@ def score_views(renderer: Renderer, case: PreparedCase, registration: Registrati
         evidence = known[1] if reuse else view_evidence(renderer, finals[key], view, objective)
         quality: Quality = assess(score, dice, *stage_agreement(learned[key], finals[key]),
                                   evidence=evidence if given_vessels else None, mirror=registration.mirror,
+                                  pairing=registration.pairing,
                                   doubts=consistency_doubts(inits[key], view.view_label, registration))
         outcomes[key] = ViewOutcome(key, view, inits[key], init_poses[key], refined[key], finals[key], score, dice, quality,
                                     learned[key] if searched else None, evidence)
