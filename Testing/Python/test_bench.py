@@ -201,7 +201,8 @@ def test_the_mirror_test_is_reported_on_correct_and_mirrored_ctas():
                 _case("phantom-5001-mirrored", {}, quality=("ok", "doubtful")) | {"mirror": test(0.08, equal=0.03)}]
     text = "\n".join(mirrored_markdown(correct, mirrored))
     assert "| as given (correct) | 4 | 1 | 1 | 1 | 1 |" in text and "| mirrored left-right | 2 | 1 | 0 | 1 | 0 |" in text
-    assert "| a mirrored CTA comes out failed | 1 of 2 | NO |" in text
+    assert "| a mirrored CTA comes out failed (both views; by any test) | 1 of 2 | NO |" in text
+    assert "| of them failed by the mirror test | 1 of 2 | - |" in text
     assert "| no mirrored CTA passes the mirror test without the sides-alike note | 1 | NO |" in text
     assert "| no correct CTA failed by the mirror test | 1 | NO |" in text
     assert "Flags of the mirrored CTAs' views: ok 1, doubtful 1, failed 2." in text
