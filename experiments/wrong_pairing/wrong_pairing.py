@@ -1,9 +1,10 @@
 """A wrong pairing on the user's path: one subject's CTA registered with another subject's two runs.
 
 For each seed s in the list, ``geopose register`` runs (as a user types it) with the CTA of s and the runs of the
-next seed in the list (crossed), and with the CTA and runs of s (correct). The CTA is linked alone into a folder of
-its own, so no phantom truth beside it is read. One JSON row per registration: the flags, their reasons, the
-objective's terms per view and the mirror test's margins.
+next seed in the list (crossed), and with the CTA and runs of s (correct). The CTA is given through a link in a folder
+of its own (the registration still finds its phantom truth, through the link, and scores against it: meaningless for
+a crossed pair, whose rows leave it out). One JSON row per registration: the flags, their reasons, the objective's
+terms per view and the mirror test's margins.
 
     python wrong_pairing.py PHANTOM_DIR OUT_DIR ROWS.jsonl SEED [SEED ...]
 """
