@@ -41,7 +41,7 @@ from geopose.volume import Volume  # noqa: E402
 
 #: The paper's H100 runtimes (docs/conventions.md section 8), for comparison.
 PAPER_S = {"calibration + init": 0.0218, "refine": 0.147, "tto": 2.0}
-STAGES = ("prepare", "calibration", "init", "refine", "search", "tto", "mirror", "score", "total")
+STAGES = ("prepare", "calibration", "init", "refine", "search", "tto", "mirror", "pairing", "score", "total")
 MARKER = "<!-- bench:pipeline -->"
 
 _BLOCK_TORCH = """

@@ -124,7 +124,7 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
     upper = register_case(case.cta, case.runs, models=models, options=options, cranium_mask=case.cranium,
                           segmentation=case.vessels)
     scorer = upper.renderer
-    stages = ("prepare", "calibration", "init", "refine", "search", "tto", "mirror", "total")
+    stages = ("prepare", "calibration", "init", "refine", "search", "tto", "mirror", "pairing", "total")
     times = {f"{stage} (biplane)": joint.runtimes_s[stage] for stage in stages if stage in joint.runtimes_s}
     times |= {f"{stage} (independent)": paper.runtimes_s[stage] for stage in ("refine", "tto", "total")}
     rig = nominal_poses(case.runs)
