@@ -171,22 +171,22 @@ def evaluate_case(case: BenchCase, models: ModelSet, settings: BenchSettings, *,
                       "refine": registration.refine_start,
                       "tto_objective": registration.tto_objective},
             "checks": registration.checks,
-            "masks": joint.labels_source,
-            "quality": {k: joint.views[k].quality.flag for k in VIEW_KEYS},
-            "quality_reasons": {k: list(joint.views[k].quality.reasons) for k in VIEW_KEYS},
+            "masks": joint.labels_source} | _verdicts(joint)
+
+
+def _verdicts(reg: CaseRegistration) -> dict:
+    """What a registration says of itself: the flags and their reasons per view, the mirror and pairing tests."""
+    registration = reg.registration
+    return {"quality": {k: reg.views[k].quality.flag for k in VIEW_KEYS},
+            "quality_reasons": {k: list(reg.views[k].quality.reasons) for k in VIEW_KEYS},
             "mirror": None if registration.mirror is None else registration.mirror.as_dict(),
             "pairing": None if registration.pairing is None else registration.pairing.as_dict()}
 
 
 def _tests(reg: CaseRegistration, name: str) -> dict:
-    """What a case registered outside the benchmark's rows reports: the mirror and pairing tests, flags, reasons."""
-    registration = reg.registration
+    """What a case registered outside the benchmark's rows reports: its name, notes, time, device and verdicts."""
     return {"case": name, "notes": reg.notes, "runtimes_s": {"total": reg.runtimes_s["total"]},
-            "device": reg.engine["device"],
-            "mirror": None if registration.mirror is None else registration.mirror.as_dict(),
-            "pairing": None if registration.pairing is None else registration.pairing.as_dict(),
-            "quality": {k: reg.views[k].quality.flag for k in VIEW_KEYS},
-            "quality_reasons": {k: list(reg.views[k].quality.reasons) for k in VIEW_KEYS}}
+            "device": reg.engine["device"]} | _verdicts(reg)
 
 
 def evaluate_mirrored(case: BenchCase, models: ModelSet, settings: BenchSettings) -> dict:
