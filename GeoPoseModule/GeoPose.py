@@ -142,7 +142,8 @@ class GeoPose(ScriptedLoadableModule):
             "the pose rests on the DICOM angles and the skull): for the best accuracy select a "
             "segmentation of the arteries on the CTA grid, e.g. painted with the Segment Editor "
             "(Threshold, Islands from the carotids and vertebrals, veins removed) or the artery "
-            "labels of a TotalSegmentator run. The runs must be subtracted: Import DSA subtracts a run archived "
+            "labels of a TotalSegmentator run (arteries only: veins in it loosen the fit, and the flag may then "
+            "doubt that the CTA is this patient's). The runs must be subtracted: Import DSA subtracts a run archived "
             "native as its own Mask Subtraction Sequence says; export any other native run subtracted."
         )
         self.parent.acknowledgementText = _(

@@ -31,6 +31,11 @@ def test_the_gain_is_the_views_mean_and_grades_the_result_by_two_bars():
     assert assess(*numbers, pairing=tight).flag == "ok"
     assert assess(*numbers, pairing=between).flag == "doubtful" and assess(*numbers, pairing=between).reasons == (between.reason,)
     assert assess(*numbers, pairing=loose).flag == "failed" and assess(*numbers, pairing=loose).reasons == (loose.reason,)
+    # on a given segmentation (it may hold veins, which loosen a right pairing's fit too) a loose fit is only doubtful
+    given = PairingTest(loose.ncc, loose.blurred_ncc, given_segmentation=True)
+    assert given.verdict == "doubtful" and not given.loose and "only loosely" in given.reason
+    assert "segmentation holds arteries only" in given.reason and "segmentation" not in loose.reason
+    assert assess(*numbers, pairing=given).flag == "doubtful" and given.as_dict()["given_segmentation"]
     # a view whose vessels do not correlate at all carries no gain; with none left the test says nothing
     assert PairingTest({"pa": 0.60, "lat": -0.02}, {"pa": 0.66, "lat": 0.10}).gains == pytest.approx({"pa": 1.10})
     silent = PairingTest({"pa": 0.0, "lat": -0.1}, {"pa": 0.3, "lat": 0.2})

@@ -228,6 +228,8 @@ def test_weak_image_evidence_keeps_the_networks_estimate(tmp_path, capsys):
                             segmentation=segmentation, options=RegistrationOptions(device="cpu", backend="torch"),
                             estimate=handed.append)
     assert any("the networks' estimate (greedy Refine + search) was kept" in note for note in record["notes"])
+    # the pairing test ran on the given segmentation, which can make the result doubtful but never fail it
+    assert record["registration"]["pairing"]["given_segmentation"] and record["registration"]["pairing"]["verdict"] != "failed"
     # The networks' estimate was handed over once with the CTA and runs read (what the browser app shows meanwhile).
     assert len(handed) == 1 and set(handed[0].runs) == {"pa", "lat"} and handed[0].cta.shape_ijk == labels.shape_ijk
     for key in ("pa", "lat"):
@@ -304,6 +306,9 @@ def test_native_runs_register_as_their_subtracted_twins(tmp_path: Path, phantom_
         assert np.corrcoef(a.tto_vessels.ravel(), b.tto_vessels.ravel())[0, 1] > 0.98, key
     record = register_files(native / "cta.nii.gz", native / "dsa_pa.dcm", native / "dsa_lat.dcm", tmp_path / "out")
     assert not any("looks unsubtracted" in note for note in record["notes"])
+    # a 2 mm CTA is too coarse for the artery classifier, so the pairing test did not run, and the record says so
+    from geopose.register.pairing import NOT_RUN_NOTE
+    assert record["registration"]["pairing"] is None and NOT_RUN_NOTE in record["notes"]
     # the same runs without their sequence are read as stored, radiographs: the registration says so
     import pydicom
 

@@ -51,7 +51,7 @@ from .evidence import view_evidence
 from .init import biplane_init
 from .mirror import mirror_test
 from .opacified import selection_judge
-from .pairing import pairing_test
+from .pairing import NOT_RUN_NOTE as PAIRING_NOT_RUN_NOTE, pairing_test
 from .progress import CancelCheck, Monitor, PreliminaryCallback, ProgressCallback, hand_over_estimate
 from .published import register_published
 from .refine import refine_from_starts
@@ -147,10 +147,12 @@ def register_case(
             mirror = mirror_test(renderer, case.views, tournament, X_learned, rig,
                                  options.objective, engine.device, monitor)
         notes += [mirror.note] if mirror.note else []
-        if case.arteries_classified:  # validated on that mask alone (pairing.py)
+        if case.arteries_classified or segmentation is not None:  # a mask of mostly arteries (pairing.py)
             with clock("pairing", engine):
                 pairing = pairing_test(selection_judge(renderer, tournament.vessel_selection), tournament.result.poses,
-                                       case.views)
+                                       case.views, given_segmentation=segmentation is not None)
+        else:
+            notes.append(PAIRING_NOT_RUN_NOTE)
     registration = Registration(
         "biplane-rigid", rig, patient_pose=kept.patient_pose, starts=dict(starts.objectives), chosen_start=kept.start,
         tto_runs=dict(tournament.runs) if tournament else {}, tto_objective=dict(tournament.objectives) if tournament else {},

@@ -18,7 +18,7 @@ Rule (thresholds named below; set on validation phantom runs, provisional for re
   ``doubtful`` when it is below ``VESSEL_NCC_OK``;
 * ``failed`` also when the CTA's vessels fit the runs' only loosely (``pairing.py``: the vessel NCC gains more than
   ``pairing.GAIN_FAILED`` from a blur): another patient's CTA, or a fit the registration missed; ``doubtful`` when
-  it gains more than ``pairing.GAIN_OK``;
+  it gains more than ``pairing.GAIN_OK``, or more than ``GAIN_FAILED`` on a given segmentation (it may hold veins);
 * ``ok`` otherwise.
 """
 

@@ -20,6 +20,8 @@ from .continuation import CONTINUE_TURN_DEG, CONTINUED_START
 from .results import CaseRegistration, ViewOutcome
 
 SCHEMA = "geopose-result"
+#: 19: ``registration.pairing`` also where the vessels are a given segmentation, with ``given_segmentation`` (a loose
+#: fit is then doubtful, never failed); a note where the CTA is too coarse for the test.
 #: 18: ``registration.pairing``: per view the vessel NCC at the TTO's result and with both images blurred, their gain
 #: and whether the fit is too loose for one patient's CTA (``register/pairing.py``; null when not run).
 #: 17: ``inputs.dsa_pa`` / ``inputs.dsa_lat`` hold ``subtraction`` where the run was archived native and subtracted by
@@ -65,7 +67,7 @@ SCHEMA = "geopose-result"
 #: levels), ``notes``, the options of ``geopose.options``; ``carm`` angles keep DICOM's signs and
 #: views name their pixel axes (``patient_orientation``, docs/conventions.md section 7).
 #: 2: ``view_logits`` are mirror-averaged; 1: single-image logits.
-SCHEMA_VERSION = 18
+SCHEMA_VERSION = 19
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "build_record", "library_versions", "patient_orientation"]
 
