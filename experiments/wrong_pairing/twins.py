@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from geopose.phantom.anatomy import sample_head
+from geopose.training.canonical import nearest_rotation
 
 #: The centreline labels of the arteries a right-CCA run opacifies (``phantom/labels.py``: ICA, anterior, external right).
 SHOWN_LABELS = (3, 5, 8)
@@ -54,8 +55,7 @@ def rigid_rms_mm(run_side: dict[str, np.ndarray], cta_side: dict[str, np.ndarray
     P = np.vstack([resampled(run_side[n]) for n in names])
     Q = np.vstack([resampled(cta_side[n]) for n in names])
     P, Q = P - P.mean(0), Q - Q.mean(0)
-    U, _, Vt = np.linalg.svd(P.T @ Q)
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    R = nearest_rotation(P.T @ Q)  # Kabsch: the rotation nearest the points' cross-covariance
     return float(np.sqrt(np.mean(np.sum((P @ R - Q) ** 2, axis=1))))
 
 

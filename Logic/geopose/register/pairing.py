@@ -13,10 +13,10 @@ the TTO's result (the networks' estimate alone lies millimetres off even for the
 mostly arteries: the one computed with the artery classifier (a CTA no coarser than 1.5 mm), or a given segmentation.
 A given segmentation may hold veins, and they loosen a right pairing's fit too (validation 6010-6029 at 1 mm, the
 computed mask without the classifier given as the segmentation: right pairings x1.12-1.26, wrong x1.22-1.50), so there
-a loose fit is doubtful, never failed; with the phantom's arteries given, right x1.03-1.15 against wrong x1.18-1.43. On 2 mm
-validation CTAs, whose computed mask keeps veins and bone rims, right and wrong pairings overlapped (gains 1.17-1.23
-against 1.21-1.39): there it does not run (the record's ``registration.pairing`` is null, and :data:`NOT_RUN_NOTE`
-says so).
+a loose fit is doubtful, never failed; with the phantom's arteries given (an upper bound), right x1.03-1.15 against
+wrong x1.18-1.43. On 2 mm validation CTAs, whose computed mask keeps veins and bone rims, right and wrong pairings
+overlapped (gains 1.17-1.23 against 1.21-1.39): there it does not run (the record's ``registration.pairing`` is null,
+and :data:`NOT_RUN_NOTE` says so).
 """
 
 from __future__ import annotations
